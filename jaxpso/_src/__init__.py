@@ -1,0 +1,1 @@
+"""Implementation of jaxpso; the public modules re-export from here."""
