@@ -18,12 +18,13 @@ outside `value_range` are counted in the edge bins (their gradient is zero).
 
 The joint histogram of the template (fixed during a frame) against n patches
 is one matrix product of the template's (h·w, bins) weights, computed once,
-with the patches' (n, h·w, bins) weights.  `soft_bins(template)` does the
+with the patches' (bins, h·w) weights, chunk by chunk of patches.  `soft_bins(template)` does the
 template side ahead of time; pass its result as `a`.
 """
 
 from __future__ import annotations
 
+import math
 from typing import NamedTuple
 
 import jax
@@ -74,7 +75,7 @@ def _check_range(value_range) -> tuple[float, float]:
     lo, hi = (float(v) for v in value_range)
   except (TypeError, ValueError):
     raise ValueError(f"value_range must be a pair (lo, hi), got {value_range!r}") from None
-  if not (jnp.isfinite(lo) and jnp.isfinite(hi) and lo < hi):
+  if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
     raise ValueError(f"value_range must be finite with lo < hi, got {value_range!r}")
   return lo, hi
 
@@ -234,19 +235,42 @@ def joint_histogram(a, b, mask=None, *, bins: int = DEFAULT_BINS,
   return counts / jnp.where(total > 0, total, 1.0)
 
 
+# Patches are histogrammed this many at a time, so the (chunk, bins, h·w)
+# weights stay small and their buffer is reused (benchmarks/similarity.py).
+_CHUNK = 32
+
+
 def _joint_counts(a: SoftBins, b, mask):
-  """Unnormalised joint histogram (..., bins, bins) as one matrix product."""
+  """Unnormalised joint histogram (..., bins, bins), a rows, b columns.
+
+  One template against n patches (the swarm case) is a single matrix product
+  per chunk of patches: the patches' weights, laid out bin-major as
+  (chunk·bins, h·w) so that the B-spline evaluation runs along the long pixel
+  axis, times the template's (h·w, bins) weights binned once.
+  """
   bins = a.weights.shape[-1]
-  wb = _parzen(b, bins, a.lo, a.hi) * mask[..., None]
-  wa = a.weights
-  lead = jnp.broadcast_shapes(wa.shape[:-3], wb.shape[:-3])
-  if all(s == 1 for s in wa.shape[:-3]):
-    # One template against many patches: contract the template's weights once.
-    wa = wa.reshape(wa.shape[-3:])
-    return jnp.einsum("hwi,...hwj->...ij", wa, jnp.broadcast_to(wb, lead + wb.shape[-3:]))
-  wa = jnp.broadcast_to(wa, lead + wa.shape[-3:])
-  wb = jnp.broadcast_to(wb, lead + wb.shape[-3:])
-  return jnp.einsum("...hwi,...hwj->...ij", wa, wb)
+  lead = jnp.broadcast_shapes(a.weights.shape[:-3], b.shape[:-2], mask.shape[:-2])
+  window = b.shape[-2:]
+  if any(s != 1 for s in a.weights.shape[:-3]):
+    wa = jnp.broadcast_to(a.weights, lead + a.weights.shape[-3:])
+    wb = _parzen(b, bins, a.lo, a.hi) * mask[..., None]
+    return jnp.einsum("...hwi,...hwj->...ij", wa, jnp.broadcast_to(wb, wa.shape))
+  wa = a.weights.reshape(-1, bins)
+  grid = jnp.arange(bins, dtype=b.dtype)[:, None]
+  scale = (bins - 3) / (a.hi - a.lo)
+
+  def counts(b_row, m_row):  # (h·w,) -> (bins, bins)
+    s = 1.0 + (jnp.clip(b_row, a.lo, a.hi) - a.lo) * scale
+    wb = _bspline3(s - grid) * m_row
+    return (wb @ wa).T
+
+  flat_b = jnp.broadcast_to(b, lead + window).reshape(-1, window[0] * window[1])
+  flat_m = jnp.broadcast_to(mask, lead + window).reshape(flat_b.shape)
+  if flat_b.shape[0] <= _CHUNK:
+    joint = jax.vmap(counts)(flat_b, flat_m)
+  else:
+    joint = jax.lax.map(lambda xs: counts(*xs), (flat_b, flat_m), batch_size=_CHUNK)
+  return joint.reshape(lead + (bins, bins))
 
 
 def _neg_entropy(p, axes):

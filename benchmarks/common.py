@@ -1,0 +1,56 @@
+"""Shared helpers for the benchmark scripts: timing, machine description, output."""
+
+from __future__ import annotations
+
+import datetime
+import json
+import os
+import platform
+import sys
+import time
+
+import jax
+import numpy as np
+
+RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+
+
+def machine() -> dict:
+  """The machine, software versions, date and command line of this run."""
+  cpu = platform.processor() or "unknown"
+  try:
+    with open("/proc/cpuinfo") as f:
+      cpu = next(line.split(":", 1)[1].strip() for line in f if line.startswith("model name"))
+  except (OSError, StopIteration):
+    pass
+  return {
+      "cpu": cpu,
+      "cores": os.cpu_count(),
+      "device": str(jax.devices()[0]),
+      "jax": jax.__version__,
+      "python": platform.python_version(),
+      "date": datetime.date.today().isoformat(),
+      "command": "python " + " ".join(sys.argv),
+  }
+
+
+def median_seconds(fn, *args, repeats: int = 7, warmup: int = 2) -> float:
+  """Median wall time of `fn(*args)` after warm-up, blocking on the result."""
+  for _ in range(warmup):
+    jax.block_until_ready(fn(*args))
+  times = []
+  for _ in range(repeats):
+    start = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    times.append(time.perf_counter() - start)
+  return float(np.median(times))
+
+
+def write(name: str, payload: dict, markdown: str) -> None:
+  """Writes results/NAME.json and results/NAME.md."""
+  os.makedirs(RESULTS, exist_ok=True)
+  with open(os.path.join(RESULTS, name + ".json"), "w") as f:
+    json.dump(payload, f, indent=1)
+  with open(os.path.join(RESULTS, name + ".md"), "w") as f:
+    f.write(markdown)
+  print(markdown)
