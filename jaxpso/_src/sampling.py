@@ -191,7 +191,9 @@ def gaussian_pyramid(image, levels: int) -> list[jax.Array]:
   image = check_image(image)
   if not isinstance(levels, int) or levels < 1:
     raise ValueError(f"levels must be an int >= 1, got {levels!r}")
-  smallest = min(image.shape) // 2 ** (levels - 1)
+  smallest = min(image.shape)
+  for _ in range(levels - 1):
+    smallest = (smallest + 1) // 2  # the size pyr_down gives
   if smallest < 2:
     raise ValueError(
         f"levels={levels} is too many for an image of shape {image.shape}:"

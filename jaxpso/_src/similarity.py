@@ -125,6 +125,16 @@ def _enough(count, window_size: int, min_valid: float):
   return count >= max(1.0, min_valid * window_size)
 
 
+def _masked_pair(a, b, mask, min_valid):
+  """Checked `a, b`, the mask broadcast to their shape, its count and the
+  enough-valid-pixels flag (...)."""
+  a, b, mask = _check_pair(a, b, mask)
+  min_valid = _check_min_valid(min_valid)
+  mask = jnp.broadcast_to(mask, jnp.broadcast_shapes(a.shape, b.shape, mask.shape))
+  count = jnp.sum(mask, axis=(-2, -1))
+  return a, b, mask, count, _enough(count, b.shape[-1] * b.shape[-2], min_valid)
+
+
 def ssd(a, b, mask=None, *, min_valid: float = DEFAULT_MIN_VALID) -> jax.Array:
   """Sum of squared differences per valid pixel (an error: lower is better).
 
@@ -146,12 +156,8 @@ def ssd(a, b, mask=None, *, min_valid: float = DEFAULT_MIN_VALID) -> jax.Array:
     >>> float(similarity.ssd(jnp.zeros((2, 2)), jnp.full((2, 2), 0.5)))
     0.25
   """
-  a, b, mask = _check_pair(a, b, mask)
-  min_valid = _check_min_valid(min_valid)
-  count = jnp.sum(jnp.broadcast_to(mask, jnp.broadcast_shapes(a.shape, b.shape, mask.shape)),
-                  axis=(-2, -1))
+  a, b, mask, count, ok = _masked_pair(a, b, mask, min_valid)
   total = jnp.sum(mask * (a - b) ** 2, axis=(-2, -1))
-  ok = _enough(count, b.shape[-1] * b.shape[-2], min_valid)
   return jnp.where(ok, total / jnp.where(ok, count, 1.0), jnp.inf)
 
 
@@ -172,23 +178,21 @@ def ncc(a, b, mask=None, *, min_valid: float = DEFAULT_MIN_VALID) -> jax.Array:
   Returns:
     (...) correlations; -inf where too few pixels are valid.
   """
-  a, b, mask = _check_pair(a, b, mask)
-  min_valid = _check_min_valid(min_valid)
-  shape = jnp.broadcast_shapes(a.shape, b.shape, mask.shape)
-  mask = jnp.broadcast_to(mask, shape)
-  count = jnp.sum(mask, axis=(-2, -1))
-  ok = _enough(count, b.shape[-1] * b.shape[-2], min_valid)
-  safe_count = jnp.where(ok, count, 1.0)[..., None, None]
-  mean_a = jnp.sum(mask * a, axis=(-2, -1), keepdims=True) / safe_count
-  mean_b = jnp.sum(mask * b, axis=(-2, -1), keepdims=True) / safe_count
-  da = mask * (a - mean_a)
-  db = mask * (b - mean_b)
-  var_a = jnp.sum(da * da, axis=(-2, -1))
-  var_b = jnp.sum(db * db, axis=(-2, -1))
-  cov = jnp.sum(da * db, axis=(-2, -1))
-  n = safe_count[..., 0, 0]
-  textured = ((var_a > n * (1e-6 * (1 + jnp.abs(mean_a[..., 0, 0]))) ** 2)
-              & (var_b > n * (1e-6 * (1 + jnp.abs(mean_b[..., 0, 0]))) ** 2))
+  a, b, mask, count, ok = _masked_pair(a, b, mask, min_valid)
+  n = jnp.where(ok, count, 1.0)
+  mean_a = jnp.sum(mask * a, axis=(-2, -1)) / n
+  mean_b = jnp.sum(mask * b, axis=(-2, -1)) / n
+  ca = a - mean_a[..., None, None]
+  cb = b - mean_b[..., None, None]
+  # Corrected two-pass sums: subtracting (Σ m c)² / n cancels the rounding
+  # error of the float mean, so a flat window has exactly zero variance.
+  sum_a = jnp.sum(mask * ca, axis=(-2, -1))
+  sum_b = jnp.sum(mask * cb, axis=(-2, -1))
+  var_a = jnp.sum(mask * ca * ca, axis=(-2, -1)) - sum_a * sum_a / n
+  var_b = jnp.sum(mask * cb * cb, axis=(-2, -1)) - sum_b * sum_b / n
+  cov = jnp.sum(mask * ca * cb, axis=(-2, -1)) - sum_a * sum_b / n
+  textured = ((var_a > n * (1e-6 * (1 + jnp.abs(mean_a))) ** 2)
+              & (var_b > n * (1e-6 * (1 + jnp.abs(mean_b))) ** 2))
   denominator = jnp.sqrt(jnp.where(textured, var_a * var_b, 1.0))
   score = jnp.where(textured, cov / denominator, 0.0)
   return jnp.where(ok, score, -jnp.inf)
