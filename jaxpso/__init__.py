@@ -5,9 +5,10 @@ image sampling) and `jaxpso.similarity` (SSD, ZNCC, mutual information).
 Importing jaxpso does not import OpenCV or matplotlib.
 """
 
+from jaxpso import pso
 from jaxpso import similarity
 from jaxpso import warp
 
 __version__ = "0.1.0"
 
-__all__ = ("similarity", "warp", "__version__")
+__all__ = ("pso", "similarity", "warp", "__version__")

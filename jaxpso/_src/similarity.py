@@ -241,7 +241,7 @@ def joint_histogram(a, b, mask=None, *, bins: int = DEFAULT_BINS,
 
 # Patches are histogrammed this many at a time, so the (chunk, bins, h·w)
 # weights stay small and their buffer is reused (benchmarks/similarity.py).
-_CHUNK = 32
+_CHUNK = 16
 
 
 def _joint_counts(a: SoftBins, b, mask):

@@ -1,0 +1,40 @@
+"""A vectorised particle swarm optimizer: one compiled step, one `lax.while_loop`.
+
+`run(key, loss_fn, lower, upper, args, config=..., hparams=...)` minimises
+`loss_fn(x, args)` over a box; `trace` is the fixed-length `lax.scan` form
+with a per-iteration record; `init` and `step` are the pure pieces.
+"""
+
+from jaxpso._src.pso import BOUNDARIES
+from jaxpso._src.pso import RNGS
+from jaxpso._src.pso import TOPOLOGIES
+from jaxpso._src.pso import VARIANTS
+from jaxpso._src.pso import PSOConfig
+from jaxpso._src.pso import PSOHParams
+from jaxpso._src.pso import PSOResult
+from jaxpso._src.pso import PSOState
+from jaxpso._src.pso import PSOTrace
+from jaxpso._src.pso import Status
+from jaxpso._src.pso import default_hparams
+from jaxpso._src.pso import init
+from jaxpso._src.pso import run
+from jaxpso._src.pso import step
+from jaxpso._src.pso import trace
+
+__all__ = (
+    "BOUNDARIES",
+    "RNGS",
+    "TOPOLOGIES",
+    "VARIANTS",
+    "PSOConfig",
+    "PSOHParams",
+    "PSOResult",
+    "PSOState",
+    "PSOTrace",
+    "Status",
+    "default_hparams",
+    "init",
+    "run",
+    "step",
+    "trace",
+)
