@@ -1,4 +1,4 @@
-"""Tests of the public surface: `jaxpso`, `jaxpso.warp` and `jaxpso.similarity`."""
+"""Tests of the public surface: `jaxpso`, `jaxpso.warp`, `jaxpso.similarity`, `jaxpso.pso`."""
 
 from __future__ import annotations
 
@@ -13,10 +13,11 @@ import numpy as np
 import pytest
 
 import jaxpso
+from jaxpso import pso
 from jaxpso import similarity
 from jaxpso import warp
 
-_MODULES = (warp, similarity)
+_MODULES = (warp, similarity, pso)
 _SRC = pathlib.Path(jaxpso.__file__).parent / "_src"
 
 
@@ -37,8 +38,8 @@ def _attribute_docstrings():
 
 def test_package_surface():
   assert jaxpso.__doc__
-  assert set(jaxpso.__all__) == {"similarity", "warp", "__version__"}
-  assert jaxpso.warp is warp and jaxpso.similarity is similarity
+  assert set(jaxpso.__all__) == {"pso", "similarity", "warp", "__version__"}
+  assert jaxpso.warp is warp and jaxpso.similarity is similarity and jaxpso.pso is pso
   assert isinstance(jaxpso.__version__, str) and jaxpso.__version__.count(".") >= 1
 
 

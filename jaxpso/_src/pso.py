@@ -69,9 +69,13 @@ import numpy as np
 from jaxpso._src import checks
 
 VARIANTS = ("inertia", "linear_inertia", "constriction", "trelea1", "trelea2", "spso2011")
+"""Names accepted by `PSOConfig.variant` (see the module docstring)."""
 TOPOLOGIES = ("global", "ring", "local", "wheel", "von_neumann", "dynamic", "random")
+"""Names accepted by `PSOConfig.topology` (see the module docstring)."""
 BOUNDARIES = ("clip", "reflect", "reinit")
+"""Names accepted by `PSOConfig.boundary`."""
 RNGS = ("hash", "threefry2x32", "rbg", "unsafe_rbg")
+"""Names accepted by `PSOConfig.rng`."""
 
 
 class Status(enum.IntEnum):
@@ -469,7 +473,8 @@ def _snap(x, lower, upper, config: PSOConfig):
   if config.grid_step is None:
     return x
   step = jnp.asarray(config.grid_step, x.dtype)[:, None]
-  return _inside(lower + jnp.round((x - lower) / step) * step, lower, upper)
+  last = jnp.floor((upper - lower) / step)  # the highest grid index inside the box
+  return lower + _inside(jnp.round((x - lower) / step), 0.0, last) * step
 
 
 def _inside(x, lower, upper):
@@ -530,8 +535,11 @@ def _update_bests(state: PSOState, x, v, loss, config: PSOConfig) -> PSOState:
   best_loss = jnp.where(improved, loss, state.best_loss)
   i = jnp.argmin(best_loss)
   new_loss = best_loss[i]
-  threshold = config.tolerance * jnp.maximum(1.0, jnp.abs(state.swarm_loss))
-  gained = (new_loss < state.swarm_loss) & ~(state.swarm_loss - new_loss <= threshold)
+  finite = jnp.isfinite(state.swarm_loss)
+  old = jnp.where(finite, state.swarm_loss, 0.0)
+  threshold = config.tolerance * jnp.maximum(1.0, jnp.abs(old))
+  # The first finite best after +inf always counts as progress.
+  gained = jnp.where(finite, old - new_loss > threshold, jnp.isfinite(new_loss))
   informants = state.informants
   if config.topology == "random":
     redraw = _random_indices(state.seed, state.iteration, informants.shape, config)
@@ -630,6 +638,14 @@ def _result(state: PSOState, config: PSOConfig) -> PSOResult:
 
 
 # ------------------------------------------------------------------ public API
+def _exact(value, shape, name: str) -> jax.Array:
+  """A finite float array of exactly `shape`, or a ValueError naming `name`."""
+  array = checks.as_checked(value, shape, name, str(shape))
+  if array.shape != shape:
+    raise ValueError(f"{name} must have shape {shape}, got shape {array.shape}")
+  return array
+
+
 def _prepare(lower, upper, hparams, config, positions, velocities, centre, scale):
   """Validates the array arguments of `init`/`run`/`trace` on the host."""
   if not isinstance(config, PSOConfig):
@@ -641,15 +657,15 @@ def _prepare(lower, upper, hparams, config, positions, velocities, centre, scale
         f"PSOConfig.grid_step has {len(config.grid_step)} entries for {d} dimensions")
   shape = (config.swarm_size, d)
   if positions is not None:
-    positions = checks.as_checked(positions, shape, "positions", f"{shape}")
+    positions = _exact(positions, shape, "positions")
   if velocities is not None:
-    velocities = checks.as_checked(velocities, shape, "velocities", f"{shape}")
+    velocities = _exact(velocities, shape, "velocities")
   if (centre is None) != (scale is None):
     raise ValueError("centre and scale must be given together")
   if centre is not None:
     if positions is not None:
       raise ValueError("give either positions or centre and scale, not both")
-    centre = checks.as_checked(centre, (d,), "centre", f"({d},)")
+    centre = _exact(centre, (d,), "centre")
     scale = checks.as_float_array(scale, "scale")
     if scale.shape not in ((), (d,)):
       raise ValueError(f"scale must be a scalar or shape ({d},), got shape {scale.shape}")
