@@ -26,7 +26,7 @@ from jaxpso import pso
 
 DIM = 6
 LOWER, UPPER = -5.12, 5.12
-ITERATIONS = {32: 2000, 256: 500, 4096: 60}
+ITERATIONS = {32: 4000, 256: 2000, 4096: 200}
 
 
 def rastrigin(x, args=None):

@@ -217,11 +217,11 @@ def default_hparams(variant: str = "inertia") -> PSOHParams:
     variant: one of `VARIANTS`.
 
   Returns:
-    `PSOHParams` of float32 scalars.
+    `PSOHParams` of float32 scalars (NumPy, so building them costs no dispatch).
   """
   if variant not in _DEFAULTS:
     raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}")
-  return PSOHParams(*(jnp.asarray(v, jnp.float32) for v in _DEFAULTS[variant]))
+  return PSOHParams(*(np.float32(v) for v in _DEFAULTS[variant]))
 
 
 class PSOState(NamedTuple):
@@ -312,7 +312,8 @@ def _check_hparams(hparams, config: PSOConfig) -> PSOHParams:
     return default_hparams(config.variant)
   if not isinstance(hparams, PSOHParams):
     raise TypeError(f"hparams must be a PSOHParams, got {type(hparams).__name__}")
-  return PSOHParams(*(jnp.asarray(v, jnp.float32) for v in hparams))
+  return PSOHParams(*(v if isinstance(v, jax.Array) and v.dtype == jnp.float32
+                      else jnp.asarray(v, jnp.float32) for v in hparams))
 
 
 def _check_loss(loss_fn, args, dim: int, dtype, config: PSOConfig) -> None:
@@ -403,6 +404,17 @@ def _von_neumann_table(n: int) -> np.ndarray:
                    r * cols + (c - 1) % cols, r * cols + (c + 1) % cols], axis=1)
 
 
+def _first_min(values):
+  """Index of the first minimum of a 1-D array, as jnp.argmin.
+
+  Two plain reductions, which XLA vectorises on the CPU, instead of the
+  (value, index) reduction of argmin: 5× faster for 4096 particles.
+  """
+  lowest = jnp.min(values)
+  index = jax.lax.iota(jnp.int32, values.shape[0])
+  return jnp.min(jnp.where(values == lowest, index, values.shape[0]))
+
+
 def _best_of(candidates, best_loss):
   """Index (n,) of the lowest loss among each row of `candidates` (n, k)."""
   choice = jnp.argmin(best_loss[candidates], axis=1)
@@ -448,7 +460,7 @@ def _neighbourhood_best(state: PSOState, config: PSOConfig):
     table = (np.arange(n)[:, None] + offsets[None, :]) % n
     index = _best_of(jnp.asarray(table), best_loss)
   elif topology == "wheel":
-    hub = jnp.argmin(best_loss)
+    hub = _first_min(best_loss)
     index = jnp.where(best_loss[0] < best_loss, 0, jnp.arange(n)).at[0].set(hub)
   elif topology == "von_neumann":
     index = _best_of(jnp.asarray(_von_neumann_table(n)), best_loss)
@@ -533,7 +545,7 @@ def _update_bests(state: PSOState, x, v, loss, config: PSOConfig) -> PSOState:
   improved = loss < state.best_loss
   best_x = jnp.where(improved[None, :], x, state.best_x)
   best_loss = jnp.where(improved, loss, state.best_loss)
-  i = jnp.argmin(best_loss)
+  i = _first_min(best_loss)
   new_loss = best_loss[i]
   finite = jnp.isfinite(state.swarm_loss)
   old = jnp.where(finite, state.swarm_loss, 0.0)
@@ -559,10 +571,11 @@ def _step(state: PSOState, loss_fn, lower, upper, args, hparams, config: PSOConf
   # Clamping with selects: jnp.clip's NaN-propagating min/max halved the
   # throughput of the whole step on the CPU (benchmarks/pso_throughput.py).
   limit = hparams.velocity_clamp * (upper - lower)
-  v = jnp.where(jnp.abs(v) > limit, jnp.sign(v) * limit, v)
+  # Materialise v: otherwise XLA recomputes it, random numbers included, in
+  # the position fusion as well as in the velocity fusion.
+  v = jax.lax.optimization_barrier(jnp.where(jnp.abs(v) > limit, jnp.sign(v) * limit, v))
   x, v = _confine(state.seed, state.iteration, state.x + v, v, lower, upper, config)
-  # Materialise the move before the loss: otherwise XLA fuses it, random
-  # numbers included, into the loss and every other consumer.
+  # Materialise the move before the loss, which would otherwise absorb it.
   x, v = jax.lax.optimization_barrier((_snap(x, lower, upper, config), v))
   loss = _evaluate(loss_fn, x, args, config)
   return _update_bests(state, x, v, loss, config)
@@ -593,7 +606,7 @@ def _init(key, loss_fn, lower, upper, args, config: PSOConfig, positions, veloci
     v = 0.5 * spread * (2 * _uniform(seed, start, _INIT_V, (d, n), dtype, config.rng) - 1)
   x = _snap(x, lower, upper, config)
   loss = _evaluate(loss_fn, x, args, config)
-  i = jnp.argmin(loss)
+  i = _first_min(loss)
   k = config.informants if config.topology == "random" else 0
   return PSOState(
       x=x, v=v, loss=loss, best_x=x, best_loss=loss, swarm_x=x[:, i], swarm_loss=loss[i],
