@@ -7,8 +7,9 @@ Importing jaxpso does not import OpenCV or matplotlib.
 
 from jaxpso import pso
 from jaxpso import similarity
+from jaxpso import synthetic
 from jaxpso import warp
 
 __version__ = "0.1.0"
 
-__all__ = ("pso", "similarity", "warp", "__version__")
+__all__ = ("pso", "similarity", "synthetic", "warp", "__version__")

@@ -15,9 +15,10 @@ import pytest
 import jaxpso
 from jaxpso import pso
 from jaxpso import similarity
+from jaxpso import synthetic
 from jaxpso import warp
 
-_MODULES = (warp, similarity, pso)
+_MODULES = (warp, similarity, pso, synthetic)
 _SRC = pathlib.Path(jaxpso.__file__).parent / "_src"
 
 
@@ -38,7 +39,7 @@ def _attribute_docstrings():
 
 def test_package_surface():
   assert jaxpso.__doc__
-  assert set(jaxpso.__all__) == {"pso", "similarity", "warp", "__version__"}
+  assert set(jaxpso.__all__) == {"pso", "similarity", "synthetic", "warp", "__version__"}
   assert jaxpso.warp is warp and jaxpso.similarity is similarity and jaxpso.pso is pso
   assert isinstance(jaxpso.__version__, str) and jaxpso.__version__.count(".") >= 1
 

@@ -1,0 +1,201 @@
+"""Synthetic sequences: a textured plane seen by a moving camera, with exact truth.
+
+The plane n · X = d of frame-0 camera coordinates carries the texture (an
+embedded image).  A smooth 6-DOF camera trajectory, optional sudden jumps,
+gain/bias drift, an intensity change part-way, blur and noise give frames
+whose ground-truth homographies (template pixel → frame pixel) and poses are
+exact: every frame is rendered by pulling the texture through the same
+plane-induced homography H = K (R + t nᵀ/d) K⁻¹ that the tracker estimates.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxpso._src import checks
+from jaxpso._src import data
+from jaxpso._src import homography
+from jaxpso._src import plane
+from jaxpso._src import sampling
+
+INTENSITY_CHANGES = ("gamma", "invert")
+"""Kinds accepted by `make_sequence(intensity_change=(frame, kind))`."""
+
+
+class Sequence(NamedTuple):
+  """A synthetic sequence and its ground truth.
+
+  Attributes:
+    frames: (T, H, W) float32 frames in [0, 1].
+    homographies: (T, 3, 3) true template → frame homographies (identity
+      plus the ROI offset at frame 0), normalised to h[2, 2] = 1.
+    corners: (T, 4, 2) true template corners (TL, TR, BR, BL) in each frame.
+    poses: (T, 4, 4) true poses: frame-0 camera → frame-t camera.
+    roi: (x, y, w, h) of the template in frame 0.
+    camera: (3, 3) intrinsics K.
+    normal: (3,) unit plane normal in frame-0 camera coordinates.
+    distance: plane distance d (n · X = d).
+  """
+  frames: np.ndarray
+  homographies: np.ndarray
+  corners: np.ndarray
+  poses: np.ndarray
+  roi: tuple[int, int, int, int]
+  camera: np.ndarray
+  normal: np.ndarray
+  distance: float
+
+
+def _trajectory(rng, num_frames: int, translation: float, rotation: float,
+                jumps, jump_size: float) -> np.ndarray:
+  """(T, 6) pose parameters (tx, ty, tz, wx, wy, wz): smooth sinusoids plus jumps.
+
+  Every axis follows amplitude · sin(2π k / period + phase) with a random
+  period of 40–120 frames, so the motion between frames is small; a jump at
+  frame k adds a random offset of `jump_size` (in units of the amplitudes)
+  that persists, a sudden large inter-frame motion.
+  """
+  k = np.arange(num_frames)[:, None]
+  period = rng.uniform(40, 120, size=6)
+  phase = rng.uniform(0, 2 * np.pi, size=6)
+  amplitude = np.array([translation, translation, 0.5 * translation,
+                        rotation, rotation, rotation])
+  params = amplitude * (np.sin(2 * np.pi * k / period + phase) - np.sin(phase))
+  for frame in jumps:
+    params[frame:] += jump_size * amplitude * rng.choice([-1.0, 1.0], size=6)
+  return params
+
+
+def _texture_to_frame0(camera, normal, distance, texture_shape, frame_shape):
+  """Homography from texture pixels to frame-0 pixels for the textured plane.
+
+  The texture is laid on the plane centred on the point the optical axis
+  hits, spanning twice the width of frame 0's view, so moderate camera motion
+  never shows the texture's edge.
+  """
+  inv_k = np.linalg.inv(camera)
+  centre_ray = inv_k @ np.array([(frame_shape[1] - 1) / 2, (frame_shape[0] - 1) / 2, 1.0])
+  origin = distance * centre_ray / (normal @ centre_ray)  # plane point on the axis
+  # In-plane axes: image x and y directions projected onto the plane.
+  e1 = np.array([1.0, 0.0, 0.0]) - normal[0] * normal
+  e1 /= np.linalg.norm(e1)
+  e2 = np.cross(normal, e1)
+  scale = 2.0 * (frame_shape[1] / camera[0, 0]) * origin[2] / texture_shape[1]
+  centre = np.array([(texture_shape[1] - 1) / 2, (texture_shape[0] - 1) / 2])
+  columns = np.stack([scale * e1, scale * e2,
+                      origin - scale * (centre[0] * e1 + centre[1] * e2)], axis=1)
+  return camera @ columns
+
+
+def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320),
+                  roi_size=(100, 100), texture: str = "camera", camera=None,
+                  normal=(0.0, 0.0, 1.0), distance: float = 1.0,
+                  translation: float = 0.05, rotation: float = 0.03, jumps=(),
+                  jump_size: float = 1.0, gain_drift: float = 0.0, noise: float = 0.0,
+                  blur: float = 0.0, intensity_change: tuple[int, str] | None = None
+                  ) -> Sequence:
+  """Renders a sequence of the textured plane seen by a moving camera.
+
+  Frame t is texture(M_t⁻¹ q) with M_t = K [R_t s e1 | R_t s e2 | R_t X₀ + t_t],
+  the texture → frame-t homography of the plane, so the true template →
+  frame homography is exactly K (R_t + t_t nᵀ/d) K⁻¹ · T(roi offset).
+
+  Args:
+    seed: random seed of the trajectory and the noise.
+    num_frames: T >= 1.
+    frame_shape: (H, W) of the frames.
+    roi_size: (h, w) of the template, centred in frame 0.
+    texture: an embedded image name (`jaxpso._src.data.IMAGES`).
+    camera: (3, 3) intrinsics; `plane.default_camera(frame_shape)` if None.
+    normal: plane normal in frame-0 camera coordinates (any length > 0).
+    distance: plane distance d > 0.
+    translation: amplitude of the smooth translation, in units of d.
+    rotation: amplitude of the smooth rotation, in radians.
+    jumps: frames at which the camera jumps.
+    jump_size: size of a jump in units of the amplitudes.
+    gain_drift: amplitude of a slow gain change: frames are scaled by
+      1 + gain_drift · sin(2π k / T) (and offset by gain_drift / 2 · (k / T)).
+    noise: standard deviation of additive Gaussian noise.
+    blur: standard deviation (px) of a Gaussian blur, 0 for none.
+    intensity_change: (frame, kind) applies kind ("gamma": v ↦ √v, "invert":
+      v ↦ 1 − v) to that frame and the following ones.
+
+  Returns:
+    `Sequence` with frames clipped to [0, 1].
+  """
+  if not isinstance(num_frames, int) or num_frames < 1:
+    raise ValueError(f"num_frames must be an int >= 1, got {num_frames!r}")
+  height, width = checks.check_shape2d(frame_shape, "frame_shape")
+  h, w = checks.check_shape2d(roi_size, "roi_size")
+  if h > height or w > width:
+    raise ValueError(f"roi_size {roi_size} does not fit in frame_shape {frame_shape}")
+  camera = (np.asarray(plane.default_camera((height, width)), np.float64) if camera is None
+            else np.asarray(camera, np.float64))
+  if camera.shape != (3, 3) or not np.all(np.isfinite(camera)) or abs(np.linalg.det(camera)) < 1e-12:
+    raise ValueError(f"camera must be a finite, invertible 3×3 matrix, got {camera!r}")
+  normal = np.asarray(normal, np.float64)
+  if normal.shape != (3,) or not np.all(np.isfinite(normal)) or np.linalg.norm(normal) < 1e-9:
+    raise ValueError(f"normal must be a finite non-zero 3-vector, got {normal!r}")
+  normal = normal / np.linalg.norm(normal)
+  if not (math.isfinite(distance) and distance > 0):
+    raise ValueError(f"distance must be > 0, got {distance!r}")
+  jumps = tuple(int(j) for j in jumps)
+  if any(not 0 < j < num_frames for j in jumps):
+    raise ValueError(f"jumps must be frames in (0, {num_frames}), got {jumps}")
+  if intensity_change is not None:
+    start, kind = intensity_change
+    if kind not in INTENSITY_CHANGES or not 0 <= int(start) < num_frames:
+      raise ValueError(
+          f"intensity_change must be (frame in [0, {num_frames}), one of {INTENSITY_CHANGES}),"
+          f" got {intensity_change!r}")
+
+  rng = np.random.default_rng(seed)
+  params = _trajectory(rng, num_frames, translation, rotation, jumps, jump_size)
+  poses = np.asarray(plane.pose_from_params(jnp.asarray(params, jnp.float32)), np.float64)
+  rotations, shifts = poses[:, :3, :3], poses[:, :3, 3]
+  frame0_to_frame = camera @ (rotations + shifts[:, :, None] * normal[None, None, :] / distance) \
+      @ np.linalg.inv(camera)
+
+  image = data.load_image(texture)
+  minification = image.shape[1] / (2.0 * width)  # texture pixels per frame-0 pixel
+  if minification > 1:  # prefilter so that rendering does not alias
+    import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+    image = cv2.GaussianBlur(image, (0, 0), 0.5 * minification)
+  texture_to_frame0 = _texture_to_frame0(camera, normal, distance, image.shape, (height, width))
+  texture_to_frame = frame0_to_frame @ texture_to_frame0
+  frame_to_texture = np.linalg.inv(texture_to_frame)
+  frame_to_texture /= frame_to_texture[:, 2:3, 2:3]
+  render = jax.jit(lambda hs: sampling.warp_image(jnp.asarray(image), hs, (height, width))[0])
+  frames = np.asarray(render(jnp.asarray(frame_to_texture, jnp.float32)), np.float64)
+
+  k = np.arange(num_frames)[:, None, None]
+  if gain_drift:
+    frames = frames * (1 + gain_drift * np.sin(2 * np.pi * k / num_frames)) \
+        + 0.5 * gain_drift * k / num_frames
+  if intensity_change is not None:
+    start, kind = intensity_change
+    changed = np.sqrt(np.clip(frames, 0, None)) if kind == "gamma" else 1.0 - frames
+    frames = np.where(k >= int(start), changed, frames)
+  if blur:
+    import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+    frames = np.stack([cv2.GaussianBlur(f, (0, 0), blur) for f in frames])
+  if noise:
+    frames = frames + rng.normal(0, noise, frames.shape)
+  frames = np.clip(frames, 0.0, 1.0).astype(np.float32)
+
+  x0, y0 = (width - w) // 2, (height - h) // 2
+  truth = frame0_to_frame @ np.array([[1.0, 0, x0], [0, 1, y0], [0, 0, 1]])
+  truth /= truth[:, 2:3, 2:3]
+  corners = np.asarray(homography.apply_to_points(
+      jnp.asarray(truth, jnp.float32), homography.rect_corners((h, w)).astype(jnp.float32))[0])
+  return Sequence(frames=frames, homographies=truth.astype(np.float32),
+                  corners=corners.astype(np.float32), poses=poses.astype(np.float32),
+                  roi=(x0, y0, w, h), camera=camera.astype(np.float32),
+                  normal=normal.astype(np.float32), distance=float(distance))
