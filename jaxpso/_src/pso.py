@@ -363,19 +363,24 @@ def _mix(x):
   return x ^ (x >> 16)
 
 
-def _uniform(seed, iteration, stream: int, shape, dtype, rng: str):
-  """U[0, 1) numbers of `shape` for (seed, iteration, stream); pure function."""
-  tag = _mix(seed[0] ^ _mix(iteration.astype(jnp.uint32) * jnp.uint32(8) + jnp.uint32(stream)))
-  if rng != "hash":
-    key = jax.random.key(_mix(tag ^ seed[1]), impl=rng)
-    return jax.random.uniform(key, shape, dtype)
-  return (_hash_bits(seed, tag, shape) >> 8).astype(dtype) * jnp.asarray(2.0**-24, dtype)
+def _tag(seed, iteration, stream: int):
+  """A 32-bit key for (seed, iteration, stream); 8 streams per iteration."""
+  return _mix(seed[0] ^ _mix(iteration.astype(jnp.uint32) * jnp.uint32(8) + jnp.uint32(stream)))
 
 
-def _hash_bits(seed, tag, shape):
+def _hash_bits(seed, iteration, stream: int, shape):
   """One keyed 32-bit hash per element of `shape`."""
   element = jax.lax.iota(jnp.uint32, int(np.prod(shape))).reshape(shape)
-  return _mix(element ^ _mix(tag + seed[1]))
+  return _mix(element ^ _mix(_tag(seed, iteration, stream) + seed[1]))
+
+
+def _uniform(seed, iteration, stream: int, shape, dtype, rng: str):
+  """U[0, 1) numbers of `shape` for (seed, iteration, stream); pure function."""
+  if rng != "hash":
+    key = jax.random.key(_mix(_tag(seed, iteration, stream) ^ seed[1]), impl=rng)
+    return jax.random.uniform(key, shape, dtype)
+  bits = _hash_bits(seed, iteration, stream, shape)
+  return (bits >> 8).astype(dtype) * jnp.asarray(2.0**-24, dtype)
 
 
 def _uniform_pair(seed, iteration, stream: int, shape, dtype, rng: str):
@@ -388,8 +393,7 @@ def _uniform_pair(seed, iteration, stream: int, shape, dtype, rng: str):
   if rng != "hash":
     r = _uniform(seed, iteration, stream, (2,) + tuple(shape), dtype, rng)
     return r[0], r[1]
-  tag = _mix(seed[0] ^ _mix(iteration.astype(jnp.uint32) * jnp.uint32(8) + jnp.uint32(stream)))
-  bits = _hash_bits(seed, tag, shape)
+  bits = _hash_bits(seed, iteration, stream, shape)
   scale = jnp.asarray(2.0**-16, dtype)
   return (bits >> 16).astype(dtype) * scale, (bits & jnp.uint32(0xFFFF)).astype(dtype) * scale
 
