@@ -1,10 +1,16 @@
 """jaxpso: planar region tracking by direct image alignment, searched by a JAX particle swarm.
 
-Public modules: `jaxpso.warp` (homographies, the plane-induced motion model,
-image sampling) and `jaxpso.similarity` (SSD, ZNCC, mutual information).
+Public: `align` (one registration: swarm + gradient polish) with `TrackConfig`,
+and the modules `jaxpso.warp` (homographies, the plane-induced motion model,
+image sampling), `jaxpso.similarity` (SSD, ZNCC, mutual information),
+`jaxpso.pso` (the swarm optimizer) and `jaxpso.synthetic` (test sequences).
 Importing jaxpso does not import OpenCV or matplotlib.
 """
 
+from jaxpso._src.align import AlignResult
+from jaxpso._src.align import AlignStatus
+from jaxpso._src.align import TrackConfig
+from jaxpso._src.align import align
 from jaxpso import pso
 from jaxpso import similarity
 from jaxpso import synthetic
@@ -12,4 +18,5 @@ from jaxpso import warp
 
 __version__ = "0.1.0"
 
-__all__ = ("pso", "similarity", "synthetic", "warp", "__version__")
+__all__ = ("AlignResult", "AlignStatus", "TrackConfig", "align", "pso", "similarity",
+           "synthetic", "warp", "__version__")

@@ -39,7 +39,10 @@ def _attribute_docstrings():
 
 def test_package_surface():
   assert jaxpso.__doc__
-  assert set(jaxpso.__all__) == {"pso", "similarity", "synthetic", "warp", "__version__"}
+  assert set(jaxpso.__all__) == {"AlignResult", "AlignStatus", "TrackConfig", "align", "pso",
+                                 "similarity", "synthetic", "warp", "__version__"}
+  for name in ("AlignResult", "AlignStatus", "TrackConfig", "align"):
+    assert getattr(jaxpso, name).__doc__
   assert jaxpso.warp is warp and jaxpso.similarity is similarity and jaxpso.pso is pso
   assert isinstance(jaxpso.__version__, str) and jaxpso.__version__.count(".") >= 1
 

@@ -1,0 +1,97 @@
+"""align: recovers perturbed homographies (Baker–Matthews style) on the embedded image."""
+
+import cv2
+import numpy as np
+import pytest
+
+import jaxpso
+from jaxpso._src import align as align_module
+from jaxpso._src.data import load_image
+
+SIZE = 64
+ORIGIN = (220.0, 170.0)
+SOURCE = np.float32([[0, 0], [SIZE - 1, 0], [SIZE - 1, SIZE - 1], [0, SIZE - 1]])
+TRUTH = SOURCE + np.float32(ORIGIN)
+CONFIG = jaxpso.TrackConfig(levels=2, swarm_size=24, max_iterations=25, search_radius=12.0,
+                            refine_steps=80)
+IMAGE = load_image("camera")
+TEMPLATE = IMAGE[170:170 + SIZE, 220:220 + SIZE].copy()
+
+
+def _perturbed(seed, sigma):
+  corners = TRUTH + np.random.default_rng(seed).normal(0, sigma, (4, 2)).astype(np.float32)
+  return cv2.getPerspectiveTransform(SOURCE, corners).astype(np.float32)
+
+
+def _corner_error(h):
+  mapped = cv2.perspectiveTransform(SOURCE[None], np.asarray(h, np.float64))[0]
+  return float(np.sqrt(np.mean(np.sum((mapped - TRUTH) ** 2, axis=1))))
+
+
+@pytest.mark.parametrize("measure", ["mi", "ncc", "ssd"])
+def test_recovers_small_perturbations_to_subpixel(measure):
+  config = CONFIG if measure == "mi" else jaxpso.TrackConfig(**{**CONFIG.__dict__, "similarity": measure})
+  errors = [_corner_error(jaxpso.align(IMAGE, TEMPLATE, _perturbed(seed, 3.0), config=config,
+                                       key=seed).homography) for seed in range(4)]
+  assert np.median(errors) < 0.3, errors
+  assert max(errors) < 1.0, errors
+
+
+def test_mi_survives_an_inverted_image_where_ssd_does_not():
+  inverted = 1.0 - IMAGE
+  start = _perturbed(7, 3.0)
+  mi = jaxpso.align(inverted, TEMPLATE, start, config=CONFIG, key=1)
+  ssd = jaxpso.align(inverted, TEMPLATE, start, key=1,
+                     config=jaxpso.TrackConfig(**{**CONFIG.__dict__, "similarity": "ssd"}))
+  assert _corner_error(mi.homography) < 1.0
+  assert _corner_error(ssd.homography) > 2.0
+
+
+def test_result_fields_determinism_and_no_retrace():
+  start = _perturbed(3, 3.0)
+  first = jaxpso.align(IMAGE, TEMPLATE, start, config=CONFIG, key=5)
+  again = jaxpso.align(IMAGE, TEMPLATE, start, config=CONFIG, key=5)
+  np.testing.assert_array_equal(first.homography, again.homography)
+  assert first.homography.shape == (3, 3) and float(first.homography[2, 2]) == 1.0
+  assert int(first.status) == jaxpso.AlignStatus.SUCCESS
+  assert float(first.score) > 0.3  # MI in nats of a matching 64×64 patch
+  assert int(first.num_evaluations) > CONFIG.swarm_size
+  compiled = align_module._align._cache_size()
+  jaxpso.align(IMAGE * 0.9, TEMPLATE, _perturbed(4, 3.0), config=CONFIG, key=6)
+  assert align_module._align._cache_size() == compiled
+
+
+def test_uint8_and_colour_inputs_are_converted():
+  image8 = np.round(IMAGE * 255).astype(np.uint8)
+  colour = np.repeat(image8[..., None], 3, axis=-1)
+  start = _perturbed(2, 2.0)
+  grey = jaxpso.align(image8, TEMPLATE, start, config=CONFIG, key=0)
+  rgb = jaxpso.align(colour, TEMPLATE, start, config=CONFIG, key=0)
+  assert _corner_error(grey.homography) < 1.0
+  assert _corner_error(rgb.homography) < 1.0
+  corners = lambda h: cv2.perspectiveTransform(SOURCE[None], np.asarray(h, np.float64))[0]
+  np.testing.assert_allclose(corners(grey.homography), corners(rgb.homography), atol=0.05)
+
+
+def test_a_template_outside_the_image_reports_no_valid_warp():
+  far = np.array([[1, 0, 5000.0], [0, 1, 5000.0], [0, 0, 1]], np.float32)
+  result = jaxpso.align(IMAGE, TEMPLATE, far, config=CONFIG)
+  assert int(result.status) == jaxpso.AlignStatus.NO_VALID_WARP
+  assert not np.isnan(np.asarray(result.homography)).any()
+
+
+@pytest.mark.parametrize("call, name", [
+    (lambda: jaxpso.align(IMAGE[0], TEMPLATE, np.eye(3)), "image"),
+    (lambda: jaxpso.align(IMAGE, TEMPLATE.astype(np.int32), np.eye(3)), "template"),
+    (lambda: jaxpso.align(IMAGE, TEMPLATE, np.zeros((3, 3))), "init_homography"),
+    (lambda: jaxpso.align(IMAGE, TEMPLATE, np.eye(2)), "init_homography"),
+    (lambda: jaxpso.align(IMAGE, TEMPLATE, np.full((3, 3), np.nan)), "init_homography"),
+    (lambda: jaxpso.align(np.where(IMAGE > 0.5, np.nan, IMAGE), TEMPLATE, np.eye(3)), "image"),
+    (lambda: jaxpso.align(IMAGE, TEMPLATE[:6, :6], np.eye(3), config=CONFIG), "template"),
+    (lambda: jaxpso.TrackConfig(similarity="sad"), "similarity"),
+    (lambda: jaxpso.TrackConfig(levels=0), "levels"),
+    (lambda: jaxpso.TrackConfig(variant="nope"), "variant"),
+])
+def test_bad_input_names_the_argument(call, name):
+  with pytest.raises((ValueError, TypeError), match=name):
+    call()
