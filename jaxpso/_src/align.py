@@ -69,7 +69,7 @@ class TrackConfig:
   topology: str = "global"
   search_radius: float = 24.0
   levels: int = 3
-  refine_steps: int = 30
+  refine_steps: int = 60
   refine_rate: float = 0.1
   min_valid: float = 0.5
 
@@ -197,6 +197,15 @@ def _align(image, template, init_homography, seed, *, config: TrackConfig) -> Al
                    loss_fn=swarm_loss, config=config.pso_config())
   best_c = start_c @ homography.corner_offsets_to_homography(found.x, shape_c)
   best, loss = homography.homography_from_level(best_c, coarse), found.loss
+  if coarse:
+    # The coarse level's optimum can disagree with the full-resolution one
+    # (a close start pulled away): keep the start when it scores better at
+    # full resolution.
+    reference = (similarity.soft_bins(template, bins=config.bins)
+                 if config.similarity == "mi" else template)
+    both = jnp.stack([init_homography, best])
+    scores = loss_of(reference, *sampling.warp_image(image, both, template.shape))
+    best = jnp.where(scores[0] <= scores[1], init_homography, best)
   for level in reversed(range(coarse)):  # coarse-to-fine gradient polish
     best, loss = _polish(image_pyramid[level], template_pyramid[level], best, level,
                          loss_of, config)
