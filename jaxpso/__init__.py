@@ -11,6 +11,7 @@ from jaxpso._src.align import AlignResult
 from jaxpso._src.align import AlignStatus
 from jaxpso._src.align import TrackConfig
 from jaxpso._src.align import align
+from jaxpso import data
 from jaxpso import pso
 from jaxpso import similarity
 from jaxpso import synthetic
@@ -18,5 +19,5 @@ from jaxpso import warp
 
 __version__ = "0.1.0"
 
-__all__ = ("AlignResult", "AlignStatus", "TrackConfig", "align", "pso", "similarity",
+__all__ = ("AlignResult", "AlignStatus", "TrackConfig", "align", "data", "pso", "similarity",
            "synthetic", "warp", "__version__")

@@ -31,3 +31,13 @@ def test_ci_runs_the_readme_test_command():
   assert len(commands) == 2
   ci = (ROOT / ".ci" / "run").read_text()
   assert commands[1] in ci
+
+
+def test_readme_python_examples_run(capsys):
+  readme = (ROOT / "README.md").read_text()
+  blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
+  assert len(blocks) == 2
+  for block in blocks:
+    exec(compile(block, "README.md", "exec"), {})
+  printed = capsys.readouterr().out
+  assert "STAGNATED" in printed or "MAX_ITERATIONS" in printed

@@ -13,12 +13,13 @@ import numpy as np
 import pytest
 
 import jaxpso
+from jaxpso import data
 from jaxpso import pso
 from jaxpso import similarity
 from jaxpso import synthetic
 from jaxpso import warp
 
-_MODULES = (warp, similarity, pso, synthetic)
+_MODULES = (warp, similarity, pso, synthetic, data)
 _SRC = pathlib.Path(jaxpso.__file__).parent / "_src"
 
 
@@ -39,8 +40,8 @@ def _attribute_docstrings():
 
 def test_package_surface():
   assert jaxpso.__doc__
-  assert set(jaxpso.__all__) == {"AlignResult", "AlignStatus", "TrackConfig", "align", "pso",
-                                 "similarity", "synthetic", "warp", "__version__"}
+  assert set(jaxpso.__all__) == {"AlignResult", "AlignStatus", "TrackConfig", "align", "data",
+                                 "pso", "similarity", "synthetic", "warp", "__version__"}
   for name in ("AlignResult", "AlignStatus", "TrackConfig", "align"):
     assert getattr(jaxpso, name).__doc__
   assert jaxpso.warp is warp and jaxpso.similarity is similarity and jaxpso.pso is pso

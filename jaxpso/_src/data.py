@@ -7,6 +7,7 @@ import importlib.resources
 import numpy as np
 
 IMAGES = ("camera", "brick")
+"""Names accepted by `load_image`."""
 
 
 def load_image(name: str = "camera") -> np.ndarray:
