@@ -80,12 +80,8 @@ class TrackConfig:
     if self.motion not in MOTIONS:
       raise ValueError(f"TrackConfig.motion must be one of {MOTIONS}, got {self.motion!r}")
     for name in ("levels", "swarm_size", "max_iterations", "bins"):
-      value = getattr(self, name)
-      if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-        raise ValueError(f"TrackConfig.{name} must be an int >= 1, got {value!r}")
-    if isinstance(self.refine_steps, bool) or not isinstance(self.refine_steps, int) \
-        or self.refine_steps < 0:
-      raise ValueError(f"TrackConfig.refine_steps must be an int >= 0, got {self.refine_steps!r}")
+      checks.check_int(getattr(self, name), f"TrackConfig.{name}", 1)
+    checks.check_int(self.refine_steps, "TrackConfig.refine_steps", 0)
     for name in ("search_radius", "refine_rate"):
       if not float(getattr(self, name)) > 0:
         raise ValueError(f"TrackConfig.{name} must be > 0, got {getattr(self, name)!r}")
@@ -118,21 +114,20 @@ class AlignResult(NamedTuple):
 
 def to_gray(image, name: str) -> jax.Array:
   """(H, W) or (H, W, 3) uint8 or float image → (H, W) float32 grey in [0, 1]."""
-  array = np.asarray(image) if not isinstance(image, jax.Array) else image
-  if array.ndim == 3 and array.shape[-1] == 3:
-    weights = jnp.asarray([0.299, 0.587, 0.114], jnp.float32)
-    array = jnp.asarray(array, jnp.float32) @ weights if array.dtype != np.uint8 else \
-        (jnp.asarray(array, jnp.float32) / 255.0) @ weights
-  elif array.ndim == 2:
-    array = jnp.asarray(array, jnp.float32) / (255.0 if array.dtype == np.uint8 else 1.0)
-  else:
+  array = image if isinstance(image, jax.Array) else np.asarray(image)
+  if array.dtype != np.uint8 and not jnp.issubdtype(array.dtype, jnp.floating):
+    raise TypeError(f"{name} must be uint8 or float, got dtype {array.dtype}")
+  if not (array.ndim == 2 or (array.ndim == 3 and array.shape[-1] == 3)):
     raise ValueError(f"{name} must be (H, W) grey or (H, W, 3) colour, got shape {array.shape}")
-  if not (jnp.issubdtype(np.asarray(image).dtype, np.floating) or np.asarray(image).dtype == np.uint8):
-    raise TypeError(f"{name} must be uint8 or float, got dtype {np.asarray(image).dtype}")
-  if min(array.shape) < 2:
-    raise ValueError(f"{name} must be at least 2×2 pixels, got shape {array.shape}")
-  checks.check_finite_if_concrete(array, name)
-  return array
+  grey = jnp.asarray(array, jnp.float32)
+  if array.dtype == np.uint8:
+    grey = grey / 255.0
+  if grey.ndim == 3:
+    grey = grey @ jnp.asarray([0.299, 0.587, 0.114], jnp.float32)
+  if min(grey.shape) < 2:
+    raise ValueError(f"{name} must be at least 2×2 pixels, got shape {grey.shape}")
+  checks.check_finite_if_concrete(grey, name)
+  return grey
 
 
 def _measure(config: TrackConfig):

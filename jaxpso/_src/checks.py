@@ -46,6 +46,13 @@ def check_trailing(array, trailing: Sequence[int], name: str, layout: str) -> No
         f"{name} must have shape {layout}, got shape {array.shape}")
 
 
+def check_int(value, name: str, minimum: int) -> int:
+  """Returns `value` if it is an int (not a bool) >= `minimum`, else raises ValueError."""
+  if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
+    raise ValueError(f"{name} must be an int >= {minimum}, got {value!r}")
+  return value
+
+
 def check_shape2d(shape, name: str) -> tuple[int, int]:
   """Returns `shape` as a pair of positive ints `(h, w)`, or raises ValueError."""
   try:

@@ -138,8 +138,7 @@ class PSOConfig:
 
   def __post_init__(self):
     def whole(name, value, minimum):
-      if isinstance(value, bool) or not isinstance(value, int) or value < minimum:
-        raise ValueError(f"PSOConfig.{name} must be an int >= {minimum}, got {value!r}")
+      checks.check_int(value, f"PSOConfig.{name}", minimum)
 
     def named(name, value, allowed):
       if value not in allowed:

@@ -189,8 +189,7 @@ def gaussian_pyramid(image, levels: int) -> list[jax.Array]:
     levels: number of levels, >= 1; every level must stay at least 2×2.
   """
   image = check_image(image)
-  if not isinstance(levels, int) or levels < 1:
-    raise ValueError(f"levels must be an int >= 1, got {levels!r}")
+  checks.check_int(levels, "levels", 1)
   smallest = min(image.shape)
   for _ in range(levels - 1):
     smallest = (smallest + 1) // 2  # the size pyr_down gives

@@ -128,8 +128,7 @@ def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320
   Returns:
     `Sequence` with frames clipped to [0, 1].
   """
-  if not isinstance(num_frames, int) or num_frames < 1:
-    raise ValueError(f"num_frames must be an int >= 1, got {num_frames!r}")
+  checks.check_int(num_frames, "num_frames", 1)
   height, width = checks.check_shape2d(frame_shape, "frame_shape")
   h, w = checks.check_shape2d(roi_size, "roi_size")
   if h > height or w > width:
