@@ -1,7 +1,7 @@
 """jaxpso: planar region tracking by direct image alignment, searched by a JAX particle swarm.
 
-Public: `align` (one registration: swarm + gradient polish) with `TrackConfig`,
-and the modules `jaxpso.warp` (homographies, the plane-induced motion model,
+Public: `track` (a region through a sequence), `align` (one registration:
+swarm + Gauss–Newton) with `TrackConfig`, and the modules `jaxpso.warp` (homographies, the plane-induced motion model,
 image sampling), `jaxpso.similarity` (SSD, ZNCC, mutual information),
 `jaxpso.pso` (the swarm optimizer) and `jaxpso.synthetic` (test sequences).
 Importing jaxpso does not import OpenCV or matplotlib.
@@ -11,6 +11,9 @@ from jaxpso._src.align import AlignResult
 from jaxpso._src.align import AlignStatus
 from jaxpso._src.align import TrackConfig
 from jaxpso._src.align import align
+from jaxpso._src.track import TrackResult
+from jaxpso._src.track import TrackStatus
+from jaxpso._src.track import track
 from jaxpso import data
 from jaxpso import pso
 from jaxpso import similarity
@@ -19,5 +22,5 @@ from jaxpso import warp
 
 __version__ = "0.1.0"
 
-__all__ = ("AlignResult", "AlignStatus", "TrackConfig", "align", "data", "pso", "similarity",
-           "synthetic", "warp", "__version__")
+__all__ = ("AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus", "align",
+           "data", "pso", "similarity", "synthetic", "track", "warp", "__version__")

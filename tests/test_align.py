@@ -12,8 +12,7 @@ SIZE = 64
 ORIGIN = (220.0, 170.0)
 SOURCE = np.float32([[0, 0], [SIZE - 1, 0], [SIZE - 1, SIZE - 1], [0, SIZE - 1]])
 TRUTH = SOURCE + np.float32(ORIGIN)
-CONFIG = jaxpso.TrackConfig(levels=2, swarm_size=24, max_iterations=25, search_radius=12.0,
-                            refine_steps=80)
+CONFIG = jaxpso.TrackConfig(levels=2, swarm_size=24, max_iterations=25, search_radius=12.0)
 IMAGE = load_image("camera")
 TEMPLATE = IMAGE[170:170 + SIZE, 220:220 + SIZE].copy()
 

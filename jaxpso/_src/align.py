@@ -1,12 +1,14 @@
-"""One registration of a template in an image: the swarm, then a gradient polish.
+"""One registration of a template in an image: the swarm, then Gauss–Newton.
 
-`align(image, template, init_homography)` searches the 8 corner offsets of
-the template (motion "homography") with the PSO engine at the coarsest level
-of a Gaussian pyramid, where the similarity's basin is widest and a swarm
-evaluation cheapest, then refines the best homography at full resolution with
-a few Adam steps on the differentiable similarity (the hybrid: the swarm finds
-the basin, the gradient the last sub-pixel).  Everything after input checks
-is one compiled function per (shapes, config).
+`align(image, template, init_homography)` searches the motion parameters
+(`jaxpso._src.motion`) with the PSO engine at the coarsest level of a
+Gaussian pyramid, where the similarity's basin is widest and a swarm
+evaluation cheapest, then refines the swarm's best with a few
+Levenberg–Marquardt steps per level down to full resolution
+(`jaxpso._src.refine`; the hybrid: the swarm finds the basin, Gauss–Newton the
+last sub-pixel).  `register` is that pipeline on prepared inputs, shared with
+`track`.  Everything after input checks is one compiled function per
+(shapes, config).
 """
 
 from __future__ import annotations
@@ -19,18 +21,21 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
-import optax
 
 from jaxpso._src import checks
 from jaxpso._src import homography
+from jaxpso._src import motion
 from jaxpso._src import pso
+from jaxpso._src import refine
 from jaxpso._src import sampling
 from jaxpso._src import similarity
 
 SIMILARITIES = ("mi", "ncc", "ssd")
 """Names accepted by `TrackConfig.similarity`."""
-MOTIONS = ("homography",)
-"""Names accepted by `TrackConfig.motion` (the plane model follows with `track`)."""
+MOTIONS = ("homography", "plane")
+"""Names accepted by `TrackConfig.motion`."""
+DOFS = (2, 4, 6)
+"""Values accepted by `TrackConfig.dof` (motion "plane")."""
 
 
 class AlignStatus(enum.IntEnum):
@@ -41,27 +46,36 @@ class AlignStatus(enum.IntEnum):
 
 @dataclasses.dataclass(frozen=True)
 class TrackConfig:
-  """Static settings of `align` (and, later, `track`); a change recompiles.
+  """Static settings of `align` and `track`; a change recompiles.
 
   Attributes:
     similarity: "mi" (default), "ncc" or "ssd".
-    motion: "homography" (8 corner offsets).
-    bins: histogram bins of MI (16: 100 % vs 70 % success at σ = 2 with 8,
-      the sharper optimum outweighing the cost; benchmarks/convergence.py).
+    motion: "homography" (8 corner offsets) or "plane" (plane-induced, `dof`).
+    dof: pose parameters of motion "plane": 2 (tx, ty), 4 (+ tz, wz) or 6.
+    bins: histogram bins of MI (16: 100 % vs 70 % success at σ = 2 with 8;
+      benchmarks/convergence.py).
     swarm_size: particles of the swarm.
     max_iterations: PSO iterations at most.
     patience: PSO stagnation stop (None disables).
     variant: PSO variant (`jaxpso.pso.VARIANTS`).
     topology: PSO topology (`jaxpso.pso.TOPOLOGIES`).
-    search_radius: half-width in full-resolution pixels of the box searched
-      for each corner coordinate around the initial homography.
+    search_radius: half-width, in full-resolution pixels of corner motion, of
+      the box searched in every motion parameter around the start.
     levels: pyramid levels; the swarm searches the coarsest.
-    refine_steps: Adam steps at full resolution after the swarm (0 disables).
-    refine_rate: Adam learning rate, in pixels of corner offset.
+    refine_steps: Gauss–Newton (Levenberg–Marquardt) steps per pyramid level
+      after the swarm (0 disables the refinement).
     min_valid: fraction of template pixels that must land in the image.
+    predict: `track` starts each frame from a constant-velocity prediction
+      (or the previous estimate, whichever scores better).
+    lost_quality: `track` declares a frame lost when its quality (MI over
+      the template's own MI, NCC, or 1 − SSD / (2 · template variance))
+      stays below this after the recovery search.
+    recovery_scale: the recovery search's radius and iterations, in units
+      of `search_radius` and `max_iterations`.
   """
   similarity: str = "mi"
   motion: str = "homography"
+  dof: int = 6
   bins: int = 16
   swarm_size: int = 32
   max_iterations: int = 40
@@ -70,21 +84,30 @@ class TrackConfig:
   topology: str = "global"
   search_radius: float = 24.0
   levels: int = 3
-  refine_steps: int = 60
-  refine_rate: float = 0.1
+  refine_steps: int = 10
   min_valid: float = 0.5
+  predict: bool = True
+  lost_quality: float = 0.3
+  recovery_scale: int = 3
 
   def __post_init__(self):
     if self.similarity not in SIMILARITIES:
       raise ValueError(f"TrackConfig.similarity must be one of {SIMILARITIES}, got {self.similarity!r}")
     if self.motion not in MOTIONS:
       raise ValueError(f"TrackConfig.motion must be one of {MOTIONS}, got {self.motion!r}")
-    for name in ("levels", "swarm_size", "max_iterations", "bins"):
+    if self.dof not in DOFS or isinstance(self.dof, bool):
+      raise ValueError(f"TrackConfig.dof must be one of {DOFS}, got {self.dof!r}")
+    for name in ("levels", "swarm_size", "max_iterations", "bins", "recovery_scale"):
       checks.check_int(getattr(self, name), f"TrackConfig.{name}", 1)
     checks.check_int(self.refine_steps, "TrackConfig.refine_steps", 0)
-    for name in ("search_radius", "refine_rate"):
-      if not float(getattr(self, name)) > 0:
-        raise ValueError(f"TrackConfig.{name} must be > 0, got {getattr(self, name)!r}")
+    if not float(self.search_radius) > 0:
+      raise ValueError(f"TrackConfig.search_radius must be > 0, got {self.search_radius!r}")
+    if not 0.0 < float(self.min_valid) <= 1.0:
+      raise ValueError(f"TrackConfig.min_valid must be in (0, 1], got {self.min_valid!r}")
+    if not float(self.lost_quality) < 1.0:
+      raise ValueError(f"TrackConfig.lost_quality must be < 1, got {self.lost_quality!r}")
+    if not isinstance(self.predict, bool):
+      raise TypeError(f"TrackConfig.predict must be a bool, got {self.predict!r}")
     self.pso_config()  # validates the PSO settings
 
   def pso_config(self) -> pso.PSOConfig:
@@ -139,78 +162,124 @@ def _measure(config: TrackConfig):
   return lambda a, b, m: similarity.ssd(a, b, m, min_valid=config.min_valid), 1.0
 
 
-def _polish(image, template, start, level: int, loss_of, config: TrackConfig):
-  """Adam on the corner offsets at one pyramid level; returns the best full-resolution
-  homography seen and its loss."""
-  reference = (similarity.soft_bins(template, bins=config.bins)
-               if config.similarity == "mi" else template)
-  start_l = homography.homography_to_level(start, level)
+class Template(NamedTuple):
+  """A template prepared once for every registration against it (a pytree).
 
-  def loss(x):  # x: (8,) corner offsets in level pixels
-    warp_h = start_l @ homography.corner_offsets_to_homography(x, template.shape)
-    return loss_of(reference, *sampling.warp_image(image, warp_h, template.shape))
+  Attributes:
+    pyramid: `levels` arrays (h_l, w_l), full resolution first.
+    bins: their soft-bin weights (h_l, w_l, bins) for "mi", else the pyramid.
+  """
+  pyramid: list
+  bins: list
 
-  optimizer = optax.adam(config.refine_rate)
+  def reference(self, level: int):
+    """What `_measure`'s loss takes as the template at `level`."""
+    if self.bins[level].ndim == 3:
+      return similarity.SoftBins(self.bins[level], 0.0, 1.0)
+    return self.pyramid[level]
 
-  def step(_, carry):
-    x, state, best_x, best_loss = carry
-    value, grad = jax.value_and_grad(loss)(x)
-    better = value < best_loss
-    best_x, best_loss = jnp.where(better, x, best_x), jnp.where(better, value, best_loss)
-    updates, state = optimizer.update(jnp.where(jnp.isfinite(grad), grad, 0.0), state)
-    return optax.apply_updates(x, updates), state, best_x, best_loss
 
-  zero = jnp.zeros(8, jnp.float32)
-  x, _, best_x, best_loss = jax.lax.fori_loop(
-      0, config.refine_steps, step, (zero, optimizer.init(zero), zero, jnp.float32(jnp.inf)))
-  last = loss(x)
-  x = jnp.where(last < best_loss, x, best_x)
-  warp_h = start_l @ homography.corner_offsets_to_homography(x, template.shape)
-  return homography.homography_from_level(warp_h, level), jnp.minimum(last, best_loss)
+def prepare_template(template, config: TrackConfig) -> Template:
+  """(h, w) grey template → `Template` (its pyramid and soft bins)."""
+  pyramid = sampling.gaussian_pyramid(template, config.levels)
+  bins = ([similarity.soft_bins(t, bins=config.bins).weights for t in pyramid]
+          if config.similarity == "mi" else pyramid)
+  return Template(pyramid, bins)
+
+
+def prepare_frame(image, config: TrackConfig) -> tuple[list, list]:
+  """(H, W) grey image → one packed `refine.Level` per pyramid level, and their shapes."""
+  pyramid = sampling.gaussian_pyramid(image, config.levels)
+  return [refine.pack_level(level) for level in pyramid], [level.shape for level in pyramid]
+
+
+class Registration(NamedTuple):
+  """What `register` found (all arrays).
+
+  Attributes:
+    u: (D,) motion parameters relative to the base.
+    homography: (3, 3) template → frame, h[2, 2] = 1.
+    loss: () the loss at full resolution (+inf if too few pixels are valid).
+    num_iterations: () PSO iterations plus refinement steps.
+    num_evaluations: () particle evaluations plus refinement steps.
+  """
+  u: jax.Array
+  homography: jax.Array
+  loss: jax.Array
+  num_iterations: jax.Array
+  num_evaluations: jax.Array
+
+
+def register(frame: list, frame_shapes: list, template: Template, base, geometry, seed,
+             radius, *, config: TrackConfig, max_iterations: int) -> Registration:
+  """The swarm at the coarsest level, then Gauss–Newton down to full resolution.
+
+  Args:
+    frame: `prepare_frame` output.  frame_shapes: their (H, W), static.
+    template: `prepare_template` output.
+    base: the motion's base ((3, 3) start homography or (4, 4) base pose).
+    geometry: `motion.Plane` for motion "plane", else None.
+    seed: (2,) uint32 swarm seed.  radius: () search half-width, pixels.
+    config: settings.  max_iterations: the swarm's iteration cap (static).
+  """
+  loss_of, _ = _measure(config)
+  coarse = config.levels - 1
+  shape = template.pyramid[0].shape
+  to_h = functools.partial(motion.to_homography, base=base, geometry=geometry, shape=shape,
+                           motion=config.motion, dof=config.dof)
+
+  def at_level(u, level):
+    return homography.homography_to_level(to_h(u), level)
+
+  def score(u, level):
+    patches, mask = sampling.sample_quads(frame[level].quads, frame_shapes[level],
+                                          at_level(u, level), template.pyramid[level].shape)
+    return loss_of(template.reference(level), patches, mask)
+
+  def swarm_loss(u, _):  # u: (n, D)
+    return score(u, coarse)
+
+  dim = motion.dimension(config.motion, config.dof)
+  box = jnp.full(dim, radius, jnp.float32)
+  pso_config = dataclasses.replace(config.pso_config(), max_iterations=max_iterations)
+  found = pso._run(seed, -box, box, None, pso.default_hparams(config.variant), None, None,
+                   jnp.zeros(dim, jnp.float32), box, loss_fn=swarm_loss, config=pso_config)
+  u, loss = found.x, found.loss
+  for level in reversed(range(config.levels)):
+    reference = template.reference(level)
+    u, loss = refine.gauss_newton(
+        u, frame[level], frame_shapes[level], template.pyramid[level],
+        template.bins[level] if config.similarity == "mi" else None,
+        lambda patch, mask: loss_of(reference, patch, mask),
+        functools.partial(at_level, level=level), config.refine_steps, config.similarity,
+        config.min_valid)
+  warp = to_h(u)
+  steps = config.levels * (config.refine_steps + 1)
+  return Registration(u=u, homography=warp / warp[2, 2], loss=loss,
+                      num_iterations=found.num_iterations + steps,
+                      num_evaluations=found.num_evaluations + steps)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
 def _align(image, template, init_homography, seed, *, config: TrackConfig) -> AlignResult:
-  loss_of, sign = _measure(config)
-  coarse = config.levels - 1
-  image_pyramid = sampling.gaussian_pyramid(image, config.levels)
-  template_pyramid = sampling.gaussian_pyramid(template, config.levels)
-  image_c, template_c = image_pyramid[-1], template_pyramid[-1]
-  shape_c = template_c.shape
-  reference_c = (similarity.soft_bins(template_c, bins=config.bins)
-                 if config.similarity == "mi" else template_c)
-  start_c = homography.homography_to_level(init_homography, coarse)
-  radius = config.search_radius / 2**coarse
-
-  def swarm_loss(x, args):  # x: (n, 8) corner offsets at the coarse level
-    frame, start = args
-    candidates = start @ homography.corner_offsets_to_homography(x, shape_c)
-    return loss_of(reference_c, *sampling.warp_image(frame, candidates, shape_c))
-
-  box = jnp.full(8, radius, jnp.float32)
-  found = pso._run(seed, -box, box, (image_c, start_c), pso.default_hparams(config.variant),
-                   None, None, jnp.zeros(8, jnp.float32), box,
-                   loss_fn=swarm_loss, config=config.pso_config())
-  best_c = start_c @ homography.corner_offsets_to_homography(found.x, shape_c)
-  best, loss = homography.homography_from_level(best_c, coarse), found.loss
-  if coarse:
-    # The coarse level's optimum can disagree with the full-resolution one
-    # (a close start pulled away): keep the start when it scores better at
-    # full resolution.
-    reference = (similarity.soft_bins(template, bins=config.bins)
-                 if config.similarity == "mi" else template)
-    both = jnp.stack([init_homography, best])
-    scores = loss_of(reference, *sampling.warp_image(image, both, template.shape))
-    best = jnp.where(scores[0] <= scores[1], init_homography, best)
-  for level in reversed(range(coarse)):  # coarse-to-fine gradient polish
-    best, loss = _polish(image_pyramid[level], template_pyramid[level], best, level,
-                         loss_of, config)
-  finite = jnp.isfinite(loss)
+  _, sign = _measure(config)
+  frame, shapes = prepare_frame(image, config)
+  found = register(frame, shapes, prepare_template(template, config), init_homography, None,
+                   seed, config.search_radius, config=config,
+                   max_iterations=config.max_iterations)
+  finite = jnp.isfinite(found.loss)
   return AlignResult(
-      homography=best / best[2, 2], score=sign * loss,
+      homography=found.homography, score=sign * found.loss,
       status=jnp.where(finite, AlignStatus.SUCCESS, AlignStatus.NO_VALID_WARP).astype(jnp.int32),
-      num_iterations=found.num_iterations + coarse * config.refine_steps,
-      num_evaluations=found.num_evaluations + coarse * (config.refine_steps + 1))
+      num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
+
+
+def check_template_size(shape, config: TrackConfig, name: str) -> None:
+  """ValueError naming `name` when the coarsest pyramid level is under 4 px."""
+  if min(shape) / 2 ** (config.levels - 1) < 4:
+    raise ValueError(
+        f"{name} of shape {tuple(shape)} is too small for levels={config.levels}:"
+        " the coarsest level would be under 4 px")
 
 
 def align(image, template, init_homography, *, config: TrackConfig = TrackConfig(),
@@ -229,6 +298,10 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
   """
   if not isinstance(config, TrackConfig):
     raise TypeError(f"config must be a TrackConfig, got {type(config).__name__}")
+  if config.motion != "homography":
+    raise ValueError(
+        f"align searches motion 'homography' (a start homography has no camera);"
+        f" got TrackConfig.motion={config.motion!r}: use jaxpso.track for 'plane'")
   image = to_gray(image, "image")
   template = to_gray(template, "template")
   init_homography = checks.as_checked(init_homography, (3, 3), "init_homography", "(3, 3)")
@@ -236,10 +309,6 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
     raise ValueError(f"init_homography must have shape (3, 3), got {init_homography.shape}")
   if abs(float(jnp.linalg.det(init_homography))) < 1e-12:
     raise ValueError(f"init_homography must be invertible, got {np.asarray(init_homography)!r}")
-  smallest = min(template.shape) / 2 ** (config.levels - 1)
-  if smallest < 4:
-    raise ValueError(
-        f"template of shape {template.shape} is too small for levels={config.levels}:"
-        " the coarsest level would be under 4 px")
+  check_template_size(template.shape, config, "template")
   return _align(image, template, init_homography.astype(jnp.float32), pso._as_seed(key),
                 config=config)

@@ -1,0 +1,96 @@
+"""Motion models: search parameters u → template → frame homographies.
+
+Both models take parameters u in pixel-like units around a base motion, so
+that one search box (±`search_radius` px in every dimension) and one damping
+serve every model:
+
+* "homography": u (…, 8) are the offsets in pixels of the template's 4
+  corners (TL, TR, BR, BL; x then y), H = start · C(u).
+* "plane": u (…, dof) are the paper's pose parameters of eq. (1) restricted to
+  `dof` (2: tx, ty; 4: tx, ty, tz, wz; 6: all), each divided by the pose
+  change that moves the template by about one pixel; the camera's incremental
+  motion T(u) is applied after the base pose, T̂ = T(u) · T_base, and
+  H = K (R̂ + t̂ nᵀ) K⁻¹ · H₀ with H₀ the template → frame-0 homography
+  (the plane distance d is 1).
+"""
+
+from __future__ import annotations
+
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxpso._src import homography
+from jaxpso._src import plane
+
+
+class Plane(NamedTuple):
+  """The fixed geometry of plane-induced motion (a pytree).
+
+  Attributes:
+    camera: (3, 3) intrinsics K.
+    normal: (3,) unit plane normal in frame-0 camera coordinates.
+    template_to_frame0: (3, 3) homography H₀.
+    unit: (dof,) pose change per unit of u (plane-distance units or radians).
+  """
+  camera: jax.Array
+  normal: jax.Array
+  template_to_frame0: jax.Array
+  unit: jax.Array
+
+
+def dimension(motion: str, dof: int) -> int:
+  """Number of search parameters of a motion model."""
+  return 8 if motion == "homography" else dof
+
+
+def plane_geometry(camera, normal, template_to_frame0, shape, dof: int) -> Plane:
+  """`Plane` with units that move the template's corners by about one pixel.
+
+  A translation tx (ty) of δ moves the image by f·δ px, and so does a
+  rotation about y (x); tz and a rotation about z move a point at distance ρ
+  from the principal point by ρ·δ, with ρ the mean distance of the
+  template's corners in frame 0.
+
+  Args:
+    camera: (3, 3) K.  normal: (3,) unit normal.
+    template_to_frame0: (3, 3) H₀.  shape: template (h, w).  dof: 2, 4 or 6.
+  """
+  corners, _ = homography.apply_to_points(template_to_frame0, homography.rect_corners(shape))
+  rho = jnp.maximum(jnp.mean(jnp.linalg.norm(corners - camera[:2, 2], axis=-1)), 1.0)
+  f = camera[0, 0]
+  per_axis = jnp.stack([1 / f, 1 / f, 1 / rho, 1 / f, 1 / f, 1 / rho])
+  return Plane(camera, normal, template_to_frame0, per_axis[np.asarray(plane.DOF_AXES[dof])])
+
+
+def plane_pose(u, base_pose, geometry: Plane, dof: int) -> jax.Array:
+  """T(u) · T_base: (…, dof) parameters → (…, 4, 4) frame-0 → frame poses."""
+  step = plane.pose_from_params(plane.expand_dof(u * geometry.unit, dof))
+  return jnp.matmul(step, base_pose)
+
+
+def pose_to_homography(pose, geometry: Plane) -> jax.Array:
+  """(…, 4, 4) poses → (…, 3, 3) template → frame homographies."""
+  frame0_to_frame = plane.plane_homography(pose, geometry.camera, geometry.normal)
+  return jnp.matmul(frame0_to_frame, geometry.template_to_frame0)
+
+
+def to_homography(u, base, geometry: Plane | None, shape, motion: str, dof: int) -> jax.Array:
+  """Search parameters → template → frame homographies.
+
+  Args:
+    u: (…, D) parameters (`dimension(motion, dof)`).
+    base: (3, 3) start homography ("homography") or (4, 4) base pose ("plane").
+    geometry: `Plane` for "plane", else None.
+    shape: template (h, w).
+    motion: "homography" or "plane".
+    dof: pose parameters of "plane".
+
+  Returns:
+    (…, 3, 3) homographies, h[2, 2] not normalised.
+  """
+  if motion == "homography":
+    return jnp.matmul(base, homography.corner_offsets_to_homography(u, shape))
+  return pose_to_homography(plane_pose(u, base, geometry, dof), geometry)

@@ -1,0 +1,152 @@
+"""Gauss–Newton refinement after the swarm, with the template's intensities
+remapped to the image's (the hybrid's gradient half).
+
+The swarm lands in the basin; a few Levenberg–Marquardt steps on the sum of
+squared differences between the warped image and a photometrically adapted
+template T̃ reach sub-pixel accuracy.  T̃ follows the similarity being
+maximised, so the refinement keeps its invariances:
+
+* "mi": T̃ = E[I | T], the image's mean intensity in each soft template bin
+  (the sum of conditional variance of Richa et al., 2011: invariant to any
+  one-to-one intensity mapping, inversion included);
+* "ncc": T̃ = a·T + b, the least-squares gain and bias;
+* "ssd": T̃ = T.
+
+T̃ is re-estimated at every step, and a step is accepted only when it
+improves the similarity itself, not the SSD.  The Jacobian is the
+image gradient (central differences) sampled at the warped points times the
+derivative of the warped points with respect to the motion parameters
+(forward mode), so any motion model of `jaxpso._src.motion` refines alike.
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+
+from jaxpso._src import homography
+from jaxpso._src import sampling
+
+# Damping of the first step, relative to the diagonal of JᵀJ; multiplied by
+# _GROW after a rejected step and by _SHRINK after an accepted one.
+_DAMPING, _GROW, _SHRINK = 1e-3, 10.0, 0.3
+
+
+class Level(NamedTuple):
+  """A frame's pyramid level, packed for sampling (a pytree).
+
+  Attributes:
+    quads: ((H-1)·(W-1), 4) `sampling.pack_quads` of the image.
+    grad_x: same, of the horizontal central-difference gradient.
+    grad_y: same, of the vertical one.
+  """
+  quads: jax.Array
+  grad_x: jax.Array
+  grad_y: jax.Array
+
+
+def pack_level(image) -> Level:
+  """(H, W) image → `Level` (intensities and gradients packed once)."""
+  grad_y, grad_x = jnp.gradient(image)
+  return Level(sampling.pack_quads(image), sampling.pack_quads(grad_x),
+               sampling.pack_quads(grad_y))
+
+
+def adapted_template(template, bin_weights, patch, mask, similarity: str):
+  """T̃ (h, w): the template in the image's intensities.
+
+  Args:
+    template: (h, w) template.
+    bin_weights: (h, w, bins) soft bins of the template (used by "mi").
+    patch: (h, w) image sampled at the current warp.
+    mask: (h, w) bool validity of `patch`.
+    similarity: "mi", "ncc" or "ssd".
+  """
+  m = mask.astype(patch.dtype)
+  count = jnp.maximum(jnp.sum(m), 1.0)
+  mean_i = jnp.sum(m * patch) / count
+  if similarity == "mi":
+    # A pseudo-count of one pixel at the mean intensity keeps empty bins finite.
+    weights = bin_weights * m[..., None]
+    per_bin = (jnp.einsum("hwk,hw->k", weights, patch) + mean_i) / (
+        jnp.sum(weights, axis=(0, 1)) + 1.0)
+    return bin_weights @ per_bin
+  if similarity == "ncc":
+    mean_t = jnp.sum(m * template) / count
+    dt = (template - mean_t) * m
+    var_t = jnp.sum(dt * dt)
+    gain = jnp.where(var_t > 1e-12, jnp.sum(dt * patch) / jnp.where(var_t > 1e-12, var_t, 1.0), 0.0)
+    return mean_i + gain * (template - mean_t)
+  return template
+
+
+def gauss_newton(u0, level: Level, frame_shape, template, bin_weights, loss_of: Callable,
+                 to_level_homography: Callable, steps: int, similarity: str,
+                 min_valid: float):
+  """Levenberg–Marquardt steps on ‖I(W(p; u)) − T̃‖², accepted by the similarity.
+
+  Each step re-estimates T̃ at the current estimate and solves the damped
+  normal equations; a step is kept only when it lowers `loss_of` (the
+  similarity being maximised), otherwise the damping grows and the step is
+  retried from the best estimate, so the refinement never loses ground (and
+  a T̃ gone flat from a poor start cannot drag the warp to a flat region).
+
+  Args:
+    u0: (D,) starting motion parameters.
+    level: the frame's packed `Level`.
+    frame_shape: (H, W) of the level's image.
+    template: (h, w) template at this level.
+    bin_weights: (h, w, bins) its soft bins ("mi") or None.
+    loss_of: (patch (h, w), mask (h, w)) → () loss of the similarity.
+    to_level_homography: u (D,) → (3, 3) template → level-image homography.
+    steps: iterations (one warp, one loss and one D×D solve each).
+    similarity: which photometric model T̃ follows.
+    min_valid: fraction of template pixels that must land in the image.
+
+  Returns:
+    ((D,) the lowest-loss parameters visited (u0 if no step helped), () that loss).
+  """
+  shape = template.shape
+  grid = sampling.template_grid(shape).reshape(-1, 2)
+
+  def points(u):
+    return homography.apply_to_points(to_level_homography(u), grid)[0]
+
+  def linearise(u):
+    """Loss at u, and the normal equations (JᵀJ, Jᵀr) of the adapted SSD."""
+    h = to_level_homography(u)
+    value, valid = sampling.sample_quads(level.quads, frame_shape, h, shape)
+    gx, _ = sampling.sample_quads(level.grad_x, frame_shape, h, shape)
+    gy, _ = sampling.sample_quads(level.grad_y, frame_shape, h, shape)
+    target = adapted_template(template, bin_weights, value, valid, similarity)
+    dpoints = jax.jacfwd(points)(u)  # (h·w, 2, D)
+    m = valid.reshape(-1).astype(value.dtype)
+    jac = (gx.reshape(-1, 1) * dpoints[:, 0] + gy.reshape(-1, 1) * dpoints[:, 1]) * m[:, None]
+    residual = (value - target).reshape(-1) * m
+    return loss_of(value, valid), jac.T @ jac, jac.T @ residual
+
+  d = u0.shape[0]
+
+  def body(_, carry):
+    u, best_u, best_loss, normal, gradient, damping = carry
+    loss, a, g = linearise(u)
+    better = loss < best_loss
+    best_u = jnp.where(better, u, best_u)
+    best_loss = jnp.where(better, loss, best_loss)
+    normal = jnp.where(better, a, normal)
+    gradient = jnp.where(better, g, gradient)
+    damping = jnp.where(better, damping * _SHRINK, damping * _GROW)
+    diagonal = jnp.diagonal(normal)
+    lhs = normal + jnp.diag(damping * diagonal + 1e-9 * (1.0 + jnp.max(diagonal)))
+    delta = jnp.linalg.solve(lhs, -gradient)
+    delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
+    return best_u + delta, best_u, best_loss, normal, gradient, damping
+
+  carry = (u0, u0, jnp.asarray(jnp.inf, u0.dtype), jnp.eye(d, dtype=u0.dtype),
+           jnp.zeros(d, u0.dtype), jnp.asarray(_DAMPING, u0.dtype))
+  u, best_u, best_loss, *_ = jax.lax.fori_loop(0, steps, body, carry)
+  last = loss_of(*sampling.sample_quads(level.quads, frame_shape, to_level_homography(u), shape))
+  better = last < best_loss
+  return jnp.where(better, u, best_u), jnp.where(better, last, best_loss)

@@ -1,0 +1,292 @@
+"""Frame-by-frame tracking of a planar region: `track`.
+
+Frame 0's region is the template.  Every later frame is one call of one
+compiled program (`_frame_step`): the frame's pyramid, a start chosen between
+the constant-velocity prediction and the previous estimate, the swarm and the
+Gauss–Newton refinement (`align.register`), a quality check and, when the
+quality is low, a recovery search around the last good estimate with a wider
+box and more iterations (a `lax.cond`, compiled once with the rest).  A frame
+whose quality stays low is LOST: the last good estimate is kept and the
+motion prediction is reset.  For motion "plane" the camera pose is
+accumulated, T̂ ← T(x) · T̂.
+"""
+
+from __future__ import annotations
+
+import enum
+import functools
+import sys
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxpso._src import align
+from jaxpso._src import checks
+from jaxpso._src import homography
+from jaxpso._src import motion
+from jaxpso._src import plane
+from jaxpso._src import pso
+from jaxpso._src import sampling
+from jaxpso._src import similarity
+
+
+class TrackStatus(enum.IntEnum):
+  """Per-frame outcome of `track`; 0 is success."""
+  TRACKED = 0
+  RECOVERED = 1  # found by the wider recovery search
+  LOST = 2  # quality too low: the last good estimate is kept
+
+
+class TrackResult(NamedTuple):
+  """Outcome of `track`, one entry per frame (NumPy arrays).
+
+  Attributes:
+    homographies: (T, 3, 3) template pixel → frame pixel, h[2, 2] = 1.
+    corners: (T, 4, 2) the template's corners (TL, TR, BR, BL) in each frame.
+    scores: (T,) similarity at the estimate (an error for "ssd").
+    quality: (T,) score relative to the template against itself, in (-inf, 1]
+      (1 at frame 0; `TrackConfig.lost_quality` is the threshold).
+    status: (T,) int32 `TrackStatus`.
+    poses: (T, 4, 4) frame-0 → frame camera poses for motion "plane", else None.
+    num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0).
+    num_evaluations: (T,) similarity evaluations.
+  """
+  homographies: np.ndarray
+  corners: np.ndarray
+  scores: np.ndarray
+  quality: np.ndarray
+  status: np.ndarray
+  poses: np.ndarray | None
+  num_iterations: np.ndarray
+  num_evaluations: np.ndarray
+
+
+class _Constants(NamedTuple):
+  """What every frame step shares (a pytree)."""
+  template: align.Template
+  self_score: jax.Array  # the loss of the template against itself, for quality
+  geometry: motion.Plane | None
+  seed: jax.Array
+
+
+class _Carry(NamedTuple):
+  """The tracker's state between frames (a pytree)."""
+  estimate: jax.Array  # (3, 3) homography or (4, 4) pose: the last good estimate
+  velocity: jax.Array  # same shape: estimate_t · estimate_{t-1}⁻¹
+  frame: jax.Array  # () int32 index of the next frame
+
+
+def _quality(loss, constants: _Constants, config: align.TrackConfig):
+  """Loss → quality in (-inf, 1]; 1 for a perfect match."""
+  if config.similarity == "ssd":
+    return 1.0 - loss / constants.self_score
+  return loss / constants.self_score  # both negative: MI (or NCC) relative to its own
+
+
+def _inverse(m):
+  """Inverse of a homography or a rigid pose."""
+  return plane.invert_pose(m) if m.shape == (4, 4) else homography.inverse(m)
+
+
+def _frame_seed(seed, frame):
+  return jnp.stack([seed[0], pso._mix(seed[1] ^ pso._mix(frame.astype(jnp.uint32)))])
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.TrackConfig):
+  """One frame: (carry, (H, W) grey image) → (carry, per-frame outputs)."""
+  frame, shapes = align.prepare_frame(image, config)
+  template = constants.template
+  shape = template.pyramid[0].shape
+  loss_of, sign = align._measure(config)
+  to_h = functools.partial(motion.to_homography, geometry=constants.geometry, shape=shape,
+                           motion=config.motion, dof=config.dof)
+  dim = motion.dimension(config.motion, config.dof)
+  zero = jnp.zeros(dim, jnp.float32)
+
+  start = carry.estimate
+  if config.predict:
+    predicted = carry.velocity @ carry.estimate
+    both = jnp.stack([to_h(zero, predicted), to_h(zero, carry.estimate)])
+    losses = loss_of(template.reference(0), *sampling.sample_quads(
+        frame[0].quads, shapes[0], both, shape))
+    start = jnp.where(losses[0] <= losses[1], predicted, carry.estimate)
+
+  seed = _frame_seed(constants.seed, carry.frame)
+  search = functools.partial(align.register, frame, shapes, template, geometry=constants.geometry,
+                             config=config)
+  found = search(base=start, seed=seed, radius=jnp.float32(config.search_radius),
+                 max_iterations=config.max_iterations)
+  quality = _quality(found.loss, constants, config)
+  weak = ~(quality >= config.lost_quality)
+
+  def recover(_):
+    wide = search(base=carry.estimate, seed=seed ^ jnp.uint32(0x5BD1E995),
+                  radius=jnp.float32(config.search_radius * config.recovery_scale),
+                  max_iterations=config.max_iterations * config.recovery_scale)
+    keep = found.loss <= wide.loss
+    return jax.tree.map(lambda a, b: jnp.where(keep, a, b), found, wide), carry.estimate
+
+  found, base = jax.lax.cond(weak, recover, lambda _: (found, start), None)
+  quality = _quality(found.loss, constants, config)
+  lost = ~(quality >= config.lost_quality)
+  status = jnp.where(lost, TrackStatus.LOST,
+                     jnp.where(weak, TrackStatus.RECOVERED, TrackStatus.TRACKED)).astype(jnp.int32)
+
+  estimate = (found.homography if config.motion == "homography"
+              else motion.plane_pose(found.u, base, constants.geometry, config.dof))
+  estimate = jnp.where(lost, carry.estimate, estimate)
+  velocity = jnp.where(lost, jnp.eye(estimate.shape[0], dtype=estimate.dtype),
+                       estimate @ _inverse(carry.estimate))
+  h = to_h(zero, estimate)
+  h = h / h[2, 2]
+  outputs = dict(homography=h, score=sign * found.loss,
+                 quality=quality, status=status, estimate=estimate,
+                 num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
+  return _Carry(estimate, velocity, carry.frame + 1), outputs
+
+
+def _frames(frames):
+  """An iterator over the frames, and their number if known."""
+  if isinstance(frames, (np.ndarray, jax.Array)):
+    if frames.ndim not in (3, 4):
+      raise ValueError(
+          f"frames must be (T, H, W) or (T, H, W, 3), or an iterable of frames;"
+          f" got an array of shape {frames.shape}")
+    return iter(frames), frames.shape[0]
+  if isinstance(frames, (str, bytes)) or not hasattr(frames, "__iter__"):
+    raise TypeError(f"frames must be an array or an iterable of frames, got {type(frames).__name__}")
+  return iter(frames), (len(frames) if hasattr(frames, "__len__") else None)
+
+
+def _template_geometry(roi, frame_shape):
+  """roi → (template → frame-0 homography (3, 3), template shape (h, w))."""
+  array = np.asarray(roi, np.float64) if not isinstance(roi, (str, bytes)) else None
+  if array is None or array.shape not in ((4,), (4, 2)):
+    raise ValueError(f"roi must be (x, y, w, h) or (4, 2) corners TL, TR, BR, BL; got {roi!r}")
+  if not np.all(np.isfinite(array)):
+    raise ValueError(f"roi must be finite, got {roi!r}")
+  height, width = frame_shape
+  if array.shape == (4,):
+    x, y, w, h = array
+    if w < 1 or h < 1 or w != int(w) or h != int(h):
+      raise ValueError(f"roi width and height must be positive integers, got {roi!r}")
+    corners = np.array([[x, y], [x + w - 1, y], [x + w - 1, y + h - 1], [x, y + h - 1]])
+    shape = (int(h), int(w))
+  else:
+    corners = array
+    w = 0.5 * (np.linalg.norm(corners[1] - corners[0]) + np.linalg.norm(corners[2] - corners[3]))
+    h = 0.5 * (np.linalg.norm(corners[3] - corners[0]) + np.linalg.norm(corners[2] - corners[1]))
+    shape = (int(round(h)) + 1, int(round(w)) + 1)
+    edges = np.roll(corners, -1, axis=0) - corners
+    turns = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
+    if not (np.all(turns > 0) or np.all(turns < 0)) or min(shape) < 2:
+      raise ValueError(f"roi corners must form a convex, non-degenerate quadrilateral, got {roi!r}")
+  if (corners.min(axis=0) < 0).any() or corners[:, 0].max() > width - 1 or corners[:, 1].max() > height - 1:
+    raise ValueError(f"roi {roi!r} must lie inside frame 0 of shape {frame_shape}")
+  rect = np.asarray(homography.rect_corners(shape), np.float64)
+  h0 = np.asarray(homography.homography_from_corners(jnp.asarray(rect, jnp.float32),
+                                                     jnp.asarray(corners, jnp.float32)))
+  return jnp.asarray(h0 / h0[2, 2], jnp.float32), shape
+
+
+def _plane_geometry(camera, plane_normal, frame_shape, h0, shape, dof):
+  """Validated `motion.Plane` from the user's camera and normal."""
+  k = (np.asarray(plane.default_camera(frame_shape), np.float64) if camera is None
+       else np.asarray(camera, np.float64))
+  if k.shape != (3, 3) or not np.all(np.isfinite(k)) or abs(np.linalg.det(k)) < 1e-12:
+    raise ValueError(f"camera must be a finite, invertible 3×3 matrix, got {camera!r}")
+  n = np.array([0.0, 0.0, 1.0]) if plane_normal is None else np.asarray(plane_normal, np.float64)
+  if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
+    raise ValueError(f"plane_normal must be a finite non-zero 3-vector, got {plane_normal!r}")
+  n = n / np.linalg.norm(n)
+  centre = np.asarray(h0, np.float64) @ np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2, 1.0])
+  ray = np.linalg.solve(k, centre / centre[2])
+  if not n @ ray > 1e-6:
+    raise ValueError(
+        f"plane_normal {plane_normal!r} puts the ROI's plane behind the camera: n·X = d > 0"
+        " must hold for the points X seen in the ROI")
+  return motion.plane_geometry(jnp.asarray(k, jnp.float32), jnp.asarray(n, jnp.float32), h0,
+                               shape, dof)
+
+
+def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0, camera=None,
+          plane_normal=None, progress: bool = False) -> TrackResult:
+  """Tracks the region `roi` of frame 0 through `frames`.
+
+  Args:
+    frames: (T, H, W) or (T, H, W, 3) array, or any iterable of frames (a
+      video reader), uint8 or float in [0, 1], grey or colour, all one size.
+    roi: (x, y, w, h) box in frame 0 (integer w, h), or (4, 2) corners TL,
+      TR, BR, BL in frame-0 pixels.
+    config: `TrackConfig` (motion, similarity, swarm, refinement, recovery).
+    key: int seed or PRNG key; a fixed key gives bit-identical results.
+    camera: (3, 3) intrinsics K for motion "plane"; default f = max(H, W) and
+      the principal point at the frame's centre.
+    plane_normal: (3,) normal of the target plane in frame-0 camera
+      coordinates with n·X = d > 0 on the plane (d is taken as 1, so
+      translations are in units of the plane's distance); default (0, 0, 1),
+      fronto-parallel.  A rough normal is allowed.
+    progress: print a progress line to stderr.
+
+  Returns:
+    `TrackResult`.
+
+  Raises:
+    ValueError: zero frames, frames of differing sizes or with non-finite
+      pixels, a bad or out-of-frame ROI, a textureless template, a bad camera
+      or normal.  TypeError: a bad dtype or config.
+  """
+  if not isinstance(config, align.TrackConfig):
+    raise TypeError(f"config must be a TrackConfig, got {type(config).__name__}")
+  iterator, total = _frames(frames)
+  first = next(iterator, None)
+  if first is None:
+    raise ValueError("frames must hold at least one frame, got none")
+  frame0 = align.to_gray(first, "frames[0]")
+  h0, shape = _template_geometry(roi, frame0.shape)
+  align.check_template_size(shape, config, "roi")
+  template = sampling.warp_image(frame0, h0, shape)[0]
+  if float(jnp.std(template)) < 1e-3:
+    raise ValueError(f"roi {roi!r} is textureless (intensity std < 1e-3): nothing to track")
+  prepared = align.prepare_template(template, config)
+  loss_of, _ = align._measure(config)
+  self_score = (2.0 * jnp.var(template) if config.similarity == "ssd"
+                else loss_of(prepared.reference(0), template, jnp.ones(shape, bool)))
+  geometry = None
+  if config.motion == "plane":
+    geometry = _plane_geometry(camera, plane_normal, frame0.shape, h0, shape, config.dof)
+  elif camera is not None or plane_normal is not None:
+    raise ValueError("camera and plane_normal apply to motion 'plane' only;"
+                     f" got TrackConfig.motion={config.motion!r}")
+  constants = _Constants(prepared, self_score, geometry, pso._as_seed(key))
+  first_estimate = h0 if geometry is None else jnp.eye(4, dtype=jnp.float32)
+  carry = _Carry(first_estimate, jnp.eye(first_estimate.shape[0], dtype=jnp.float32),
+                 jnp.ones([], jnp.int32))
+
+  outputs = [dict(homography=h0, score=0.0 if config.similarity == "ssd" else -self_score, quality=jnp.float32(1.0),
+                  status=jnp.int32(TrackStatus.TRACKED), estimate=first_estimate,
+                  num_iterations=jnp.int32(0), num_evaluations=jnp.int32(0))]
+  for index, raw in enumerate(iterator, start=1):
+    image = align.to_gray(raw, f"frames[{index}]")
+    if image.shape != frame0.shape:
+      raise ValueError(
+          f"frames[{index}] has shape {image.shape}, frame 0 has {frame0.shape}: all frames"
+          " must have one size")
+    carry, out = _frame_step(carry, image, constants, config=config)
+    outputs.append(out)
+    if progress:
+      of = f"/{total}" if total else ""
+      print(f"\rtracking: frame {index + 1}{of}", end="", file=sys.stderr, flush=True)
+  if progress:
+    print(file=sys.stderr)
+  stacked = jax.device_get({k: jnp.stack([o[k] for o in outputs]) for k in outputs[0]})
+  corners, _ = homography.apply_to_points(jnp.asarray(stacked["homography"]),
+                                          homography.rect_corners(shape))
+  return TrackResult(
+      homographies=stacked["homography"], corners=np.asarray(corners),
+      scores=stacked["score"], quality=stacked["quality"], status=stacked["status"],
+      poses=stacked["estimate"] if geometry is not None else None,
+      num_iterations=stacked["num_iterations"], num_evaluations=stacked["num_evaluations"])
