@@ -14,8 +14,8 @@ maximised, so the refinement keeps its invariances:
 
 T̃ is re-estimated at every step, and a step is accepted only when it
 improves the similarity itself, not the SSD.  The Jacobian is the
-image gradient (central differences) sampled at the warped points times the
-derivative of the warped points with respect to the motion parameters
+image gradient (central differences, packed with the image so one gather
+reads both) at the warped points times the derivative of the warped points with respect to the motion parameters
 (forward mode), so any motion model of `jaxpso._src.motion` refines alike.
 """
 
@@ -32,26 +32,6 @@ from jaxpso._src import sampling
 # Damping of the first step, relative to the diagonal of JᵀJ; multiplied by
 # _GROW after a rejected step and by _SHRINK after an accepted one.
 _DAMPING, _GROW, _SHRINK = 1e-3, 10.0, 0.3
-
-
-class Level(NamedTuple):
-  """A frame's pyramid level, packed for sampling (a pytree).
-
-  Attributes:
-    quads: ((H-1)·(W-1), 4) `sampling.pack_quads` of the image.
-    grad_x: same, of the horizontal central-difference gradient.
-    grad_y: same, of the vertical one.
-  """
-  quads: jax.Array
-  grad_x: jax.Array
-  grad_y: jax.Array
-
-
-def pack_level(image) -> Level:
-  """(H, W) image → `Level` (intensities and gradients packed once)."""
-  grad_y, grad_x = jnp.gradient(image)
-  return Level(sampling.pack_quads(image), sampling.pack_quads(grad_x),
-               sampling.pack_quads(grad_y))
 
 
 def adapted_template(template, bin_weights, patch, mask, similarity: str):
@@ -82,7 +62,7 @@ def adapted_template(template, bin_weights, patch, mask, similarity: str):
   return template
 
 
-def gauss_newton(u0, level: Level, frame_shape, template, bin_weights, loss_of: Callable,
+def gauss_newton(u0, table, frame_shape, template, bin_weights, loss_of: Callable,
                  to_level_homography: Callable, steps: int, similarity: str,
                  min_valid: float):
   """Levenberg–Marquardt steps on ‖I(W(p; u)) − T̃‖², accepted by the similarity.
@@ -95,7 +75,7 @@ def gauss_newton(u0, level: Level, frame_shape, template, bin_weights, loss_of: 
 
   Args:
     u0: (D,) starting motion parameters.
-    level: the frame's packed `Level`.
+    table: the level's image packed by `sampling.pack_with_gradient`.
     frame_shape: (H, W) of the level's image.
     template: (h, w) template at this level.
     bin_weights: (h, w, bins) its soft bins ("mi") or None.
@@ -116,10 +96,8 @@ def gauss_newton(u0, level: Level, frame_shape, template, bin_weights, loss_of: 
 
   def linearise(u):
     """Loss at u, and the normal equations (JᵀJ, Jᵀr) of the adapted SSD."""
-    h = to_level_homography(u)
-    value, valid = sampling.sample_quads(level.quads, frame_shape, h, shape)
-    gx, _ = sampling.sample_quads(level.grad_x, frame_shape, h, shape)
-    gy, _ = sampling.sample_quads(level.grad_y, frame_shape, h, shape)
+    value, gx, gy, valid = sampling.sample_with_gradient(
+        table, frame_shape, to_level_homography(u), shape)
     target = adapted_template(template, bin_weights, value, valid, similarity)
     dpoints = jax.jacfwd(points)(u)  # (h·w, 2, D)
     m = valid.reshape(-1).astype(value.dtype)
@@ -147,6 +125,7 @@ def gauss_newton(u0, level: Level, frame_shape, template, bin_weights, loss_of: 
   carry = (u0, u0, jnp.asarray(jnp.inf, u0.dtype), jnp.eye(d, dtype=u0.dtype),
            jnp.zeros(d, u0.dtype), jnp.asarray(_DAMPING, u0.dtype))
   u, best_u, best_loss, *_ = jax.lax.fori_loop(0, steps, body, carry)
-  last = loss_of(*sampling.sample_quads(level.quads, frame_shape, to_level_homography(u), shape))
+  value, _, _, valid = sampling.sample_with_gradient(table, frame_shape, to_level_homography(u), shape)
+  last = loss_of(value, valid)
   better = last < best_loss
   return jnp.where(better, u, best_u), jnp.where(better, last, best_loss)

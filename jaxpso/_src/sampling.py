@@ -89,24 +89,52 @@ def pack_quads(image) -> jax.Array:
                     image[1:, 1:]], axis=-1).reshape(-1, 4)
 
 
-def sample_quads(quads, frame_shape, homographies, shape):
-  """`warp_image` on an image already packed by `pack_quads` (no checks).
-
-  The tracker packs a frame once and samples it at every PSO iteration.
-  """
+def _gather(quads, frame_shape, homographies, shape):
+  """The 2×2 neighbourhoods (..., h, w, 4), fractional offsets and validity."""
   height, width = frame_shape
   grid = template_grid(shape)
   x, y, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
   x0 = jnp.clip(jnp.floor(x), 0, width - 2)
   y0 = jnp.clip(jnp.floor(y), 0, height - 2)
-  fx = x - x0
-  fy = y - y0
   index = y0.astype(jnp.int32) * (width - 1) + x0.astype(jnp.int32)
-  q = jnp.take(quads, index, axis=0, mode="clip")
+  return jnp.take(quads, index, axis=0, mode="clip"), x - x0, y - y0, valid
+
+
+def sample_quads(quads, frame_shape, homographies, shape):
+  """`warp_image` on an image already packed by `pack_quads` (no checks).
+
+  The tracker packs a frame once and samples it at every PSO iteration.
+  """
+  q, fx, fy, valid = _gather(quads, frame_shape, homographies, shape)
   top = q[..., 0] + fx * (q[..., 1] - q[..., 0])
   bottom = q[..., 2] + fx * (q[..., 3] - q[..., 2])
   patches = top + fy * (bottom - top)
   return jnp.where(valid, patches, 0.0), valid
+
+
+def pack_with_gradient(image) -> jax.Array:
+  """`pack_quads` of the image and of its central-difference gradients.
+
+  Returns:
+    ((H-1)·(W-1), 12) rows: the 2×2 neighbourhoods of I, ∂I/∂x and ∂I/∂y.
+  """
+  grad_y, grad_x = jnp.gradient(image)
+  return jnp.concatenate([pack_quads(image), pack_quads(grad_x), pack_quads(grad_y)], axis=-1)
+
+
+def sample_with_gradient(table, frame_shape, homographies, shape):
+  """`sample_quads` of the image and its gradients from one `pack_with_gradient` table.
+
+  Returns:
+    (patches, grad_x, grad_y, mask), each (..., h, w); zeros where invalid.
+  """
+  q, fx, fy, valid = _gather(table, frame_shape, homographies, shape)
+  q = q.reshape(q.shape[:-1] + (3, 4))
+  fx, fy = fx[..., None], fy[..., None]
+  top = q[..., 0] + fx * (q[..., 1] - q[..., 0])
+  bottom = q[..., 2] + fx * (q[..., 3] - q[..., 2])
+  values = jnp.where(valid[..., None], top + fy * (bottom - top), 0.0)
+  return values[..., 0], values[..., 1], values[..., 2], valid
 
 
 def warp_image(image, homographies, shape):

@@ -111,7 +111,7 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
     predicted = carry.velocity @ carry.estimate
     both = jnp.stack([to_h(zero, predicted), to_h(zero, carry.estimate)])
     losses = loss_of(template.reference(0), *sampling.sample_quads(
-        frame[0].quads, shapes[0], both, shape))
+        frame.quads[0], shapes[0], both, shape))
     start = jnp.where(losses[0] <= losses[1], predicted, carry.estimate)
 
   seed = _frame_seed(constants.seed, carry.frame)
