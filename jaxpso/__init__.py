@@ -1,9 +1,11 @@
 """jaxpso: planar region tracking by direct image alignment, searched by a JAX particle swarm.
 
 Public: `track` (a region through a sequence), `align` (one registration:
-swarm + Gauss–Newton) with `TrackConfig`, and the modules `jaxpso.warp` (homographies, the plane-induced motion model,
-image sampling), `jaxpso.similarity` (SSD, ZNCC, mutual information),
-`jaxpso.pso` (the swarm optimizer) and `jaxpso.synthetic` (test sequences).
+swarm + Gauss–Newton) with `TrackConfig`, and the modules `jaxpso.warp`
+(homographies, the plane-induced motion model, image sampling),
+`jaxpso.similarity` (SSD, ZNCC, mutual information),
+`jaxpso.pso` (the swarm optimizer), `jaxpso.synthetic` (test sequences) and
+`jaxpso.io` (videos, overlays, results files).
 Importing jaxpso does not import OpenCV or matplotlib.
 """
 
@@ -15,6 +17,7 @@ from jaxpso._src.track import TrackResult
 from jaxpso._src.track import TrackStatus
 from jaxpso._src.track import track
 from jaxpso import data
+from jaxpso import io
 from jaxpso import pso
 from jaxpso import similarity
 from jaxpso import synthetic
@@ -23,4 +26,4 @@ from jaxpso import warp
 __version__ = "0.1.0"
 
 __all__ = ("AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus", "align",
-           "data", "pso", "similarity", "synthetic", "track", "warp", "__version__")
+           "data", "io", "pso", "similarity", "synthetic", "track", "warp", "__version__")

@@ -71,7 +71,7 @@ class TrackConfig:
       "homography" and, for "plane", let the pose drift along the
       translation/rotation ambiguity (benchmarks/tracking.py).
     lost_quality: `track` declares a frame lost when its quality (MI over
-      the template's own MI, NCC, or 1 − SSD / (2 · template variance))
+      the template's own MI, NCC, or 1 − SSD / template variance)
       stays below this after the recovery search.
     recovery_scale: the recovery search's radius and iterations, in units
       of `search_radius` and `max_iterations`.
@@ -90,7 +90,7 @@ class TrackConfig:
   refine_steps: int = 10
   min_valid: float = 0.5
   predict: bool = False
-  lost_quality: float = 0.3
+  lost_quality: float = 0.5
   recovery_scale: int = 3
 
   def __post_init__(self):
@@ -190,23 +190,10 @@ def prepare_template(template, config: TrackConfig) -> Template:
   return Template(pyramid, bins)
 
 
-class Frame(NamedTuple):
-  """An image prepared for sampling at every pyramid level (a pytree).
-
-  Attributes:
-    quads: per level, `sampling.pack_quads` (the swarm's table).
-    tables: per level, `sampling.pack_with_gradient` (Gauss–Newton's).
-  """
-  quads: list
-  tables: list
-
-
-def prepare_frame(image, config: TrackConfig) -> tuple[Frame, list]:
-  """(H, W) grey image → `Frame`, and the (H, W) of each pyramid level."""
+def prepare_frame(image, config: TrackConfig) -> tuple[list, list]:
+  """(H, W) grey image → each pyramid level packed by `sampling.pack_quads`, and their shapes."""
   pyramid = sampling.gaussian_pyramid(image, config.levels)
-  return (Frame([sampling.pack_quads(level) for level in pyramid],
-                [sampling.pack_with_gradient(level) for level in pyramid]),
-          [level.shape for level in pyramid])
+  return [sampling.pack_quads(level) for level in pyramid], [level.shape for level in pyramid]
 
 
 class Registration(NamedTuple):
@@ -216,7 +203,7 @@ class Registration(NamedTuple):
     u: (D,) motion parameters relative to the base.
     homography: (3, 3) template → frame, h[2, 2] = 1.
     loss: () the loss at full resolution (+inf if too few pixels are valid).
-    num_iterations: () PSO iterations plus refinement steps.
+    num_iterations: () PSO iterations plus refinement steps (of both candidates).
     num_evaluations: () particle evaluations plus refinement steps.
   """
   u: jax.Array
@@ -248,9 +235,11 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
     return homography.homography_to_level(to_h(u), level)
 
   def score(u, level):
-    patches, mask = sampling.sample_quads(frame.quads[level], frame_shapes[level],
-                                          at_level(u, level), template.pyramid[level].shape)
-    return loss_of(template.reference(level), patches, mask)
+    h = at_level(u, level)
+    level_shape = template.pyramid[level].shape
+    patches, mask = sampling.sample_quads(frame[level], frame_shapes[level], h, level_shape)
+    loss = loss_of(template.reference(level), patches, mask)
+    return jnp.where(motion.admissible(h, level_shape), loss, jnp.inf)
 
   def swarm_loss(u, _):  # u: (n, D)
     return score(u, coarse)
@@ -264,28 +253,33 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
   def refine_at(level, u):
     reference = template.reference(level)
     return refine.gauss_newton(
-        u, frame.tables[level], frame_shapes[level], template.pyramid[level],
+        u, frame[level], frame_shapes[level], template.pyramid[level],
         template.bins[level] if config.similarity == "mi" else None,
         lambda patch, mask: loss_of(reference, patch, mask),
         functools.partial(at_level, level=level), config.refine_steps, config.similarity,
         config.min_valid)
 
-  # The swarm's best and the start are both refined down the pyramid: the
-  # coarse level's optimum can be a wrong one near a start that was already in
-  # the right basin.  The one with the lower loss at the last level before
-  # full resolution goes on.
-  candidates = jnp.stack([found.x, jnp.zeros_like(found.x)])
-  losses = jnp.stack([found.loss, jnp.inf])
-  for level in reversed(range(1, config.levels)):
-    candidates, losses = jax.vmap(functools.partial(refine_at, level))(candidates)
+  # The swarm's best is refined from the coarsest level down; the start joins
+  # it at the level below full resolution (the coarse levels' optimum can be a
+  # wrong one near a start that was already in the right basin, and their
+  # few pixels can pull a close start away); the one with the lower loss
+  # there is refined at full resolution.
+  u, evaluations = found.x, jnp.zeros([], jnp.int32)
+  for level in reversed(range(2, config.levels)):
+    u, _, taken = refine_at(level, u)
+    evaluations += taken
+  candidates = jnp.stack([u, jnp.zeros_like(u)])
+  if config.levels > 1:
+    candidates, losses, taken = jax.vmap(functools.partial(refine_at, 1))(candidates)
+    evaluations += jnp.sum(taken)
+  else:
+    losses = jnp.stack([found.loss, jnp.inf])
   best = jnp.argmin(losses)
-  u, loss = candidates[best], losses[best]
-  u, loss = refine_at(0, u)
-  warp = to_h(u)
-  steps = (2 * config.levels - 1) * (config.refine_steps + 1)
-  return Registration(u=u, homography=warp / warp[2, 2], loss=loss,
-                      num_iterations=found.num_iterations + steps,
-                      num_evaluations=found.num_evaluations + steps)
+  u, loss, taken = refine_at(0, candidates[best])
+  evaluations += taken
+  return Registration(u=u, homography=normalized(to_h(u)), loss=loss,
+                      num_iterations=found.num_iterations + evaluations,
+                      num_evaluations=found.num_evaluations + evaluations)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
@@ -300,6 +294,11 @@ def _align(image, template, init_homography, seed, *, config: TrackConfig) -> Al
       homography=found.homography, score=sign * found.loss,
       status=jnp.where(finite, AlignStatus.SUCCESS, AlignStatus.NO_VALID_WARP).astype(jnp.int32),
       num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
+
+
+def normalized(h) -> jax.Array:
+  """(3, 3) h / h[2, 2] with h[2, 2] exactly 1 (XLA divides by multiplying)."""
+  return (h / h[2, 2]).at[2, 2].set(1.0)
 
 
 def check_template_size(shape, config: TrackConfig, name: str) -> None:

@@ -102,3 +102,35 @@ def to_homography(u, base, geometry: Plane | None, shape, motion: str, dof: int)
     moved = quad + u.reshape(u.shape[:-1] + (4, 2))
     return homography.homography_from_corners(rect, moved)
   return pose_to_homography(plane_pose(u, base, geometry, dof), geometry)
+
+
+# A candidate whose template area changes by more than this factor either way
+# is rejected (a swarm far from the target can otherwise collapse the quad
+# onto a few pixels whose statistics happen to match).
+MAX_AREA_RATIO = 16.0
+
+
+def admissible(h, shape) -> jax.Array:
+  """Whether homographies keep the template a convex quad of sensible size.
+
+  True where all 4 corners map with w > 0, the mapped quad is convex with the
+  template's orientation and its area is within `MAX_AREA_RATIO` of the
+  template's either way.
+
+  Args:
+    h: (…, 3, 3) template → frame homographies.  shape: template (h, w).
+
+  Returns:
+    (…) bool.
+  """
+  rect = homography.rect_corners(shape)
+  quad, w = homography.apply_to_points(h, rect)
+  edges = jnp.roll(quad, -1, axis=-2) - quad
+  turns = (edges[..., 0] * jnp.roll(edges, -1, axis=-2)[..., 1]
+           - edges[..., 1] * jnp.roll(edges, -1, axis=-2)[..., 0])
+  area = 0.5 * jnp.sum(quad[..., 0] * jnp.roll(quad, -1, axis=-2)[..., 1]
+                       - jnp.roll(quad, -1, axis=-2)[..., 0] * quad[..., 1], axis=-1)
+  template_area = (shape[0] - 1.0) * (shape[1] - 1.0)
+  ratio = area / template_area
+  return (jnp.all(w > 0, axis=-1) & jnp.all(turns > 0, axis=-1)
+          & (ratio > 1 / MAX_AREA_RATIO) & (ratio < MAX_AREA_RATIO))

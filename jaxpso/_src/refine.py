@@ -14,8 +14,8 @@ maximised, so the refinement keeps its invariances:
 
 T̃ is re-estimated at every step, and a step is accepted only when it
 improves the similarity itself, not the SSD.  The Jacobian is the
-image gradient (central differences, packed with the image so one gather
-reads both) at the warped points times the derivative of the warped points with respect to the motion parameters
+image gradient (central differences, read from the same packed table) at
+the warped points times the derivative of the warped points with respect to the motion parameters
 (forward mode), so any motion model of `jaxpso._src.motion` refines alike.
 """
 
@@ -27,11 +27,15 @@ import jax
 import jax.numpy as jnp
 
 from jaxpso._src import homography
+from jaxpso._src import motion
 from jaxpso._src import sampling
 
 # Damping of the first step, relative to the diagonal of JᵀJ; multiplied by
 # _GROW after a rejected step and by _SHRINK after an accepted one.
 _DAMPING, _GROW, _SHRINK = 1e-3, 10.0, 0.3
+# Stop when a proposed step moves no parameter by more than _TOLERANCE units
+# (1/100 px of corner motion) or the damping has grown past _MAX_DAMPING.
+_TOLERANCE, _MAX_DAMPING = 1e-2, 1e6
 
 
 def adapted_template(template, bin_weights, patch, mask, similarity: str):
@@ -62,12 +66,13 @@ def adapted_template(template, bin_weights, patch, mask, similarity: str):
   return template
 
 
-def gauss_newton(u0, table, frame_shape, template, bin_weights, loss_of: Callable,
+def gauss_newton(u0, quads, frame_shape, template, bin_weights, loss_of: Callable,
                  to_level_homography: Callable, steps: int, similarity: str,
                  min_valid: float):
   """Levenberg–Marquardt steps on ‖I(W(p; u)) − T̃‖², accepted by the similarity.
 
-  Each step re-estimates T̃ at the current estimate and solves the damped
+  A step whose warp is not `motion.admissible` counts as a failure.  Each
+  step re-estimates T̃ at the current estimate and solves the damped
   normal equations; a step is kept only when it lowers `loss_of` (the
   similarity being maximised), otherwise the damping grows and the step is
   retried from the best estimate, so the refinement never loses ground (and
@@ -75,18 +80,20 @@ def gauss_newton(u0, table, frame_shape, template, bin_weights, loss_of: Callabl
 
   Args:
     u0: (D,) starting motion parameters.
-    table: the level's image packed by `sampling.pack_with_gradient`.
+    quads: the level's image packed by `sampling.pack_quads`.
     frame_shape: (H, W) of the level's image.
     template: (h, w) template at this level.
     bin_weights: (h, w, bins) its soft bins ("mi") or None.
     loss_of: (patch (h, w), mask (h, w)) → () loss of the similarity.
     to_level_homography: u (D,) → (3, 3) template → level-image homography.
-    steps: iterations (one warp, one loss and one D×D solve each).
+    steps: iterations at most (one warp, one loss and one D×D solve each);
+      fewer once a step moves less than 1/100 px or the damping explodes.
     similarity: which photometric model T̃ follows.
     min_valid: fraction of template pixels that must land in the image.
 
   Returns:
-    ((D,) the lowest-loss parameters visited (u0 if no step helped), () that loss).
+    ((D,) the lowest-loss parameters visited (u0 if no step helped), () that
+    loss, () int32 loss evaluations made).
   """
   shape = template.shape
   grid = sampling.template_grid(shape).reshape(-1, 2)
@@ -96,19 +103,20 @@ def gauss_newton(u0, table, frame_shape, template, bin_weights, loss_of: Callabl
 
   def linearise(u):
     """Loss at u, and the normal equations (JᵀJ, Jᵀr) of the adapted SSD."""
-    value, gx, gy, valid = sampling.sample_with_gradient(
-        table, frame_shape, to_level_homography(u), shape)
+    h = to_level_homography(u)
+    value, gx, gy, valid = sampling.sample_with_gradient(quads, frame_shape, h, shape)
     target = adapted_template(template, bin_weights, value, valid, similarity)
     dpoints = jax.jacfwd(points)(u)  # (h·w, 2, D)
     m = valid.reshape(-1).astype(value.dtype)
     jac = (gx.reshape(-1, 1) * dpoints[:, 0] + gy.reshape(-1, 1) * dpoints[:, 1]) * m[:, None]
     residual = (value - target).reshape(-1) * m
-    return loss_of(value, valid), jac.T @ jac, jac.T @ residual
+    loss = jnp.where(motion.admissible(h, shape), loss_of(value, valid), jnp.inf)
+    return loss, jac.T @ jac, jac.T @ residual
 
   d = u0.shape[0]
 
-  def body(_, carry):
-    u, best_u, best_loss, normal, gradient, damping = carry
+  def body(carry):
+    step, u, best_u, best_loss, normal, gradient, damping, _ = carry
     loss, a, g = linearise(u)
     better = loss < best_loss
     best_u = jnp.where(better, u, best_u)
@@ -120,12 +128,18 @@ def gauss_newton(u0, table, frame_shape, template, bin_weights, loss_of: Callabl
     lhs = normal + jnp.diag(damping * diagonal + 1e-9 * (1.0 + jnp.max(diagonal)))
     delta = jnp.linalg.solve(lhs, -gradient)
     delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
-    return best_u + delta, best_u, best_loss, normal, gradient, damping
+    return step + 1, best_u + delta, best_u, best_loss, normal, gradient, damping, delta
 
-  carry = (u0, u0, jnp.asarray(jnp.inf, u0.dtype), jnp.eye(d, dtype=u0.dtype),
-           jnp.zeros(d, u0.dtype), jnp.asarray(_DAMPING, u0.dtype))
-  u, best_u, best_loss, *_ = jax.lax.fori_loop(0, steps, body, carry)
-  value, _, _, valid = sampling.sample_with_gradient(table, frame_shape, to_level_homography(u), shape)
-  last = loss_of(value, valid)
+  def running(carry):
+    step, *_, damping, delta = carry
+    return (step < steps) & (jnp.max(jnp.abs(delta)) > _TOLERANCE) & (damping < _MAX_DAMPING)
+
+  zero = jnp.zeros(d, u0.dtype)
+  carry = (jnp.zeros([], jnp.int32), u0, u0, jnp.asarray(jnp.inf, u0.dtype),
+           jnp.eye(d, dtype=u0.dtype), zero, jnp.asarray(_DAMPING, u0.dtype), zero + jnp.inf)
+  taken, u, best_u, best_loss, *_ = jax.lax.while_loop(running, body, carry)
+  h = to_level_homography(u)
+  last = jnp.where(motion.admissible(h, shape),
+                   loss_of(*sampling.sample_quads(quads, frame_shape, h, shape)), jnp.inf)
   better = last < best_loss
-  return jnp.where(better, u, best_u), jnp.where(better, last, best_loss)
+  return jnp.where(better, u, best_u), jnp.where(better, last, best_loss), taken + 1

@@ -112,29 +112,40 @@ def sample_quads(quads, frame_shape, homographies, shape):
   return jnp.where(valid, patches, 0.0), valid
 
 
-def pack_with_gradient(image) -> jax.Array:
-  """`pack_quads` of the image and of its central-difference gradients.
+def sample_with_gradient(quads, frame_shape, homographies, shape):
+  """`sample_quads` plus the central-difference image gradient at the samples.
 
-  Returns:
-    ((H-1)·(W-1), 12) rows: the 2×2 neighbourhoods of I, ∂I/∂x and ∂I/∂y.
-  """
-  grad_y, grad_x = jnp.gradient(image)
-  return jnp.concatenate([pack_quads(image), pack_quads(grad_x), pack_quads(grad_y)], axis=-1)
-
-
-def sample_with_gradient(table, frame_shape, homographies, shape):
-  """`sample_quads` of the image and its gradients from one `pack_with_gradient` table.
+  The gradient image's bilinear interpolation at p equals the central
+  difference of the interpolated image, (I(p + e) − I(p − e)) / 2 with unit
+  steps e, which four more gathers of the same packed table give; no
+  gradient image is built or packed.  (Where p ± e leaves the frame the
+  difference is one-sided.)
 
   Returns:
     (patches, grad_x, grad_y, mask), each (..., h, w); zeros where invalid.
   """
-  q, fx, fy, valid = _gather(table, frame_shape, homographies, shape)
-  q = q.reshape(q.shape[:-1] + (3, 4))
-  fx, fy = fx[..., None], fy[..., None]
-  top = q[..., 0] + fx * (q[..., 1] - q[..., 0])
-  bottom = q[..., 2] + fx * (q[..., 3] - q[..., 2])
-  values = jnp.where(valid[..., None], top + fy * (bottom - top), 0.0)
-  return values[..., 0], values[..., 1], values[..., 2], valid
+  height, width = frame_shape
+  grid = template_grid(shape)
+  x, y, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
+
+  def at(px, py):
+    px = jnp.clip(px, 0.0, width - 1.0)
+    py = jnp.clip(py, 0.0, height - 1.0)
+    x0 = jnp.minimum(jnp.floor(px), width - 2)
+    y0 = jnp.minimum(jnp.floor(py), height - 2)
+    q = jnp.take(quads, y0.astype(jnp.int32) * (width - 1) + x0.astype(jnp.int32), axis=0,
+                 mode="clip")
+    fx, fy = px - x0, py - y0
+    top = q[..., 0] + fx * (q[..., 1] - q[..., 0])
+    bottom = q[..., 2] + fx * (q[..., 3] - q[..., 2])
+    return top + fy * (bottom - top)
+
+  step_x = jnp.minimum(x + 1.0, width - 1.0) - jnp.maximum(x - 1.0, 0.0)
+  step_y = jnp.minimum(y + 1.0, height - 1.0) - jnp.maximum(y - 1.0, 0.0)
+  grad_x = (at(x + 1.0, y) - at(x - 1.0, y)) / step_x
+  grad_y = (at(x, y + 1.0) - at(x, y - 1.0)) / step_y
+  zero = lambda v: jnp.where(valid, v, 0.0)
+  return zero(at(x, y)), zero(grad_x), zero(grad_y), valid
 
 
 def warp_image(image, homographies, shape):

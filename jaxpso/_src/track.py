@@ -80,7 +80,7 @@ class _Carry(NamedTuple):
 
 def _quality(loss, constants: _Constants, config: align.TrackConfig):
   """Loss → quality in (-inf, 1]; 1 for a perfect match."""
-  if config.similarity == "ssd":
+  if config.similarity == "ssd":  # 0 for a flat patch at the template's mean
     return 1.0 - loss / constants.self_score
   return loss / constants.self_score  # both negative: MI (or NCC) relative to its own
 
@@ -111,7 +111,7 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
     predicted = carry.velocity @ carry.estimate
     both = jnp.stack([to_h(zero, predicted), to_h(zero, carry.estimate)])
     losses = loss_of(template.reference(0), *sampling.sample_quads(
-        frame.quads[0], shapes[0], both, shape))
+        frame[0], shapes[0], both, shape))
     start = jnp.where(losses[0] <= losses[1], predicted, carry.estimate)
 
   seed = _frame_seed(constants.seed, carry.frame)
@@ -131,7 +131,7 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
 
   found, base = jax.lax.cond(weak, recover, lambda _: (found, start), None)
   quality = _quality(found.loss, constants, config)
-  lost = ~(quality >= config.lost_quality)
+  lost = ~(quality >= config.lost_quality) | ~jnp.all(jnp.isfinite(found.u))
   status = jnp.where(lost, TrackStatus.LOST,
                      jnp.where(weak, TrackStatus.RECOVERED, TrackStatus.TRACKED)).astype(jnp.int32)
 
@@ -140,8 +140,7 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
   estimate = jnp.where(lost, carry.estimate, estimate)
   velocity = jnp.where(lost, jnp.eye(estimate.shape[0], dtype=estimate.dtype),
                        estimate @ _inverse(carry.estimate))
-  h = to_h(zero, estimate)
-  h = h / h[2, 2]
+  h = align.normalized(to_h(zero, estimate))
   outputs = dict(homography=h, score=sign * found.loss,
                  quality=quality, status=status, estimate=estimate,
                  num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
@@ -253,7 +252,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
     raise ValueError(f"roi {roi!r} is textureless (intensity std < 1e-3): nothing to track")
   prepared = align.prepare_template(template, config)
   loss_of, _ = align._measure(config)
-  self_score = (2.0 * jnp.var(template) if config.similarity == "ssd"
+  self_score = (jnp.var(template) if config.similarity == "ssd"
                 else loss_of(prepared.reference(0), template, jnp.ones(shape, bool)))
   geometry = None
   if config.motion == "plane":
@@ -266,7 +265,8 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   carry = _Carry(first_estimate, jnp.eye(first_estimate.shape[0], dtype=jnp.float32),
                  jnp.ones([], jnp.int32))
 
-  outputs = [dict(homography=h0, score=0.0 if config.similarity == "ssd" else -self_score, quality=jnp.float32(1.0),
+  first_score = 0.0 if config.similarity == "ssd" else -self_score
+  outputs = [dict(homography=h0, score=first_score, quality=jnp.float32(1.0),
                   status=jnp.int32(TrackStatus.TRACKED), estimate=first_estimate,
                   num_iterations=jnp.int32(0), num_evaluations=jnp.int32(0))]
   for index, raw in enumerate(iterator, start=1):

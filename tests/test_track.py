@@ -1,0 +1,405 @@
+"""track: a planar region through short synthetic sequences with exact ground truth.
+
+Compilation dominates on a small CPU machine: every distinct `TrackConfig`
+(and frame shape) compiles one per-frame program.  So every test uses frames
+of one shape and one of six configs (three similarities with motion
+"homography", three DOF of motion "plane"), and each (config, sequence) is
+tracked once per session by `_tracked`.
+"""
+
+import dataclasses
+import functools
+
+import jax
+import numpy as np
+import pytest
+
+import jaxpso
+from jaxpso._src import track as track_module
+
+FRAME_SHAPE = (120, 160)
+ROI_SIZE = (48, 48)
+# The default similarity, MI, runs the whole pipeline: the swarm at the coarse
+# level of a 2-level pyramid, then the refinement of both candidates down to
+# full resolution.  The five other configs use one level, which halves their
+# compile time (measured ≈ 8 s instead of ≈ 15 s of CPU each) and tracks these
+# small motions as accurately; the pyramid is exercised by MI.
+CONFIG = jaxpso.TrackConfig(levels=2, swarm_size=16, max_iterations=15, refine_steps=10,
+                            search_radius=8.0)
+ONE_LEVEL = dataclasses.replace(CONFIG, levels=1)
+SIMILARITIES = ("mi", "ncc", "ssd")
+HOMOGRAPHY = {"mi": CONFIG, "ncc": dataclasses.replace(ONE_LEVEL, similarity="ncc"),
+              "ssd": dataclasses.replace(ONE_LEVEL, similarity="ssd")}
+PLANE = {dof: dataclasses.replace(ONE_LEVEL, motion="plane", dof=dof) for dof in (2, 4, 6)}
+# Which sequence each plane DOF is scored on: dof 2 and 4 on a sequence without
+# rotation (dof 4 = tx, ty, tz, wz represents it exactly, dof 2 misses only tz),
+# dof 6 on a full 6-DOF trajectory of a tilted plane (the normal matters).
+PLANE_SEQUENCE = {2: "no_rotation", 4: "no_rotation", 6: "tilted"}
+
+
+@functools.cache
+def _sequence(name: str) -> jaxpso.synthetic.Sequence:
+  """The few sequences of the file, all (T, 120, 160) with a 48×48 ROI."""
+  common = dict(frame_shape=FRAME_SHAPE, roi_size=ROI_SIZE)
+  if name == "default":  # smooth 6-DOF motion: ≤ 0.9 px per frame, 4.4 px in all
+    return jaxpso.synthetic.make_sequence(0, num_frames=8, **common)
+  if name == "no_rotation":
+    return jaxpso.synthetic.make_sequence(1, num_frames=8, rotation=0.0, **common)
+  if name == "tilted":
+    return jaxpso.synthetic.make_sequence(2, num_frames=8, normal=(0.0, -0.3, 1.0), **common)
+  if name == "other":  # new frames of the same shape, for the retrace checks
+    return jaxpso.synthetic.make_sequence(5, num_frames=5, **common)
+  if name == "slow":  # small motion (≤ 0.7 px per frame) for the loss-of-track test
+    return jaxpso.synthetic.make_sequence(3, num_frames=10, translation=0.02, rotation=0.01,
+                                          **common)
+  raise KeyError(name)
+
+
+@functools.cache
+def _tracked(config: jaxpso.TrackConfig, name: str):
+  """(track result of sequence `name`, entries this call added to `_frame_step`'s cache)."""
+  sequence = _sequence(name)
+  kwargs = (dict(camera=sequence.camera, plane_normal=sequence.normal)
+            if config.motion == "plane" else {})
+  before = track_module._frame_step._cache_size()
+  result = jaxpso.track(sequence.frames, sequence.roi, config=config, key=0, **kwargs)
+  return result, track_module._frame_step._cache_size() - before
+
+
+def _corner_rms(corners, truth) -> np.ndarray:
+  """(T,) root-mean-square distance between the estimated and the true 4 corners."""
+  return np.sqrt(np.mean(np.sum((np.asarray(corners) - truth) ** 2, axis=-1), axis=-1))
+
+
+def _box_corners(roi) -> np.ndarray:
+  x, y, w, h = roi
+  return np.array([[x, y], [x + w - 1, y], [x + w - 1, y + h - 1], [x, y + h - 1]], np.float32)
+
+
+# --- accuracy against ground truth ------------------------------------------------------------
+
+
+@pytest.mark.parametrize("similarity", SIMILARITIES)
+def test_homography_tracking_follows_the_true_corners(similarity):
+  result, _ = _tracked(HOMOGRAPHY[similarity], "default")
+  errors = _corner_rms(result.corners, _sequence("default").corners)
+  # Measured per-frame errors: mi ≤ 0.42 px, ncc ≤ 0.13 px, ssd ≤ 0.09 px;
+  # the bounds leave a margin of more than 2× for the worst (MI's bias).
+  assert np.median(errors) < 0.5, errors
+  assert errors.max() < 1.0, errors
+  np.testing.assert_array_equal(result.status, jaxpso.TrackStatus.TRACKED)
+
+
+@pytest.mark.parametrize("dof", [2, 4, 6])
+def test_plane_tracking_follows_the_true_corners_and_poses(dof):
+  sequence = _sequence(PLANE_SEQUENCE[dof])
+  result, _ = _tracked(PLANE[dof], PLANE_SEQUENCE[dof])
+  errors = _corner_rms(result.corners, sequence.corners)
+  np.testing.assert_array_equal(result.status, jaxpso.TrackStatus.TRACKED)
+  rotation_error = np.abs(result.poses[:, :3, :3] - sequence.poses[:, :3, :3]).max()
+  translation_error = np.abs(result.poses[:, :3, 3] - sequence.poses[:, :3, 3]).max()
+  if dof == 2:
+    # (tx, ty) cannot follow the sequence's tz (half the translation amplitude):
+    # the scale it misses grows the error steadily, measured 0.10 → 0.55 px
+    # over 8 frames (median 0.32).  Bounds with about 3× margin.
+    assert np.median(errors) < 1.0, errors
+    assert errors.max() < 1.5, errors
+    # The poses are pure (tx, ty) translations: R = I and tz = 0 exactly.
+    np.testing.assert_array_equal(result.poses[:, :3, :3], np.broadcast_to(np.eye(3), (8, 3, 3)))
+    np.testing.assert_array_equal(result.poses[:, 2, 3], 0.0)
+    assert translation_error < 0.05, translation_error  # measured 0.015 (tx, ty; tz missed)
+  else:
+    # Measured ≤ 0.12 px (dof 4 and dof 6); bounds with > 4× margin.
+    assert np.median(errors) < 0.5, errors
+    assert errors.max() < 1.0, errors
+    # Measured pose errors (units of the plane distance, rotation-matrix
+    # entries): dof 4 ≤ 0.003, dof 6 ≤ 0.01 (≤ 0.03 on other trajectories: a
+    # 48 px template barely separates a small rotation from a translation).
+    bound = 0.02 if dof == 4 else 0.06
+    assert rotation_error < bound and translation_error < bound, (rotation_error,
+                                                                 translation_error)
+  if dof == 4:  # only wz rotates: the z axis stays put
+    np.testing.assert_allclose(result.poses[:, 2, :3], np.broadcast_to([0, 0, 1], (8, 3)),
+                               atol=1e-6)
+
+
+# --- result fields ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("config, name", [(HOMOGRAPHY["mi"], "default"),
+                                          (HOMOGRAPHY["ssd"], "default"),
+                                          (PLANE[6], "tilted")],
+                         ids=["homography-mi", "homography-ssd", "plane-6"])
+def test_result_fields(config, name):
+  sequence = _sequence(name)
+  result, _ = _tracked(config, name)
+  count = len(sequence.frames)
+  assert isinstance(result, jaxpso.TrackResult)
+  assert result.homographies.shape == (count, 3, 3)
+  assert result.corners.shape == (count, 4, 2)
+  for field in ("scores", "quality", "status", "num_iterations", "num_evaluations"):
+    assert getattr(result, field).shape == (count,), field
+  assert result.status.dtype == np.int32
+  if config.motion == "plane":
+    assert result.poses.shape == (count, 4, 4)
+    np.testing.assert_array_equal(result.poses[0], np.eye(4))
+    np.testing.assert_allclose(result.poses[:, 3], np.broadcast_to([0, 0, 0, 1], (count, 4)))
+  else:
+    assert result.poses is None
+  for field, value in result._asdict().items():
+    if value is not None:
+      assert np.all(np.isfinite(value)), field
+  # Frame 0 is the ROI itself.
+  np.testing.assert_allclose(result.corners[0], _box_corners(sequence.roi), atol=1e-4)
+  np.testing.assert_allclose(result.homographies[0], sequence.homographies[0], atol=1e-5)
+  assert result.status[0] == jaxpso.TrackStatus.TRACKED
+  assert result.quality[0] == 1.0
+  assert result.num_iterations[0] == 0 and result.num_evaluations[0] == 0
+  assert np.all(result.num_iterations[1:] > 0)
+  assert np.all(result.num_evaluations[1:] >= config.swarm_size)
+  np.testing.assert_allclose(result.homographies[:, 2, 2], 1.0, rtol=0, atol=1e-6)
+  assert np.all(result.quality <= 1.0 + 1e-6)
+  assert np.all(result.quality[1:] > config.lost_quality)
+  # The corners are the homographies applied to the template's corners.
+  shape = ROI_SIZE
+  rect = np.array([[0, 0, 1], [shape[1] - 1, 0, 1], [shape[1] - 1, shape[0] - 1, 1],
+                   [0, shape[0] - 1, 1]], np.float64)
+  mapped = np.einsum("tij,kj->tki", result.homographies.astype(np.float64), rect)
+  np.testing.assert_allclose(result.corners, mapped[..., :2] / mapped[..., 2:], atol=1e-3)
+  if config.similarity == "ssd":
+    assert result.scores[0] == 0.0 and np.all(result.scores >= 0)  # an error
+  else:
+    assert np.all(result.scores > 0)  # MI in nats, NCC: higher is better
+
+
+def test_homographies_are_normalised_exactly():
+  # TrackResult documents h[2, 2] = 1.  `_frame_step` divides by h[2, 2]
+  # inside `jit`, where XLA turns x / y into x · (1 / y): 1 − 2⁻²⁴ for some frames.
+  for config, name in [(HOMOGRAPHY["mi"], "default"), (PLANE[6], "tilted")]:
+    result, _ = _tracked(config, name)
+    np.testing.assert_array_equal(result.homographies[:, 2, 2], 1.0,
+                                  err_msg=f"h[2, 2] != 1 exactly ({config.motion})")
+
+
+def test_one_frame_gives_the_roi_without_tracking():
+  sequence = _sequence("default")
+  result = jaxpso.track(sequence.frames[:1], sequence.roi, config=CONFIG)
+  assert result.homographies.shape == (1, 3, 3) and result.poses is None
+  np.testing.assert_allclose(result.corners[0], _box_corners(sequence.roi), atol=1e-4)
+
+
+# --- determinism, iterables, no retrace -------------------------------------------------------
+
+
+def test_same_key_is_bit_identical_and_iterables_match_arrays(capsys):
+  sequence = _sequence("default")
+  reference, _ = _tracked(HOMOGRAPHY["mi"], "default")
+  again = jaxpso.track(sequence.frames, sequence.roi, config=HOMOGRAPHY["mi"], key=0)
+  np.testing.assert_array_equal(again.homographies, reference.homographies)
+  np.testing.assert_array_equal(again.scores, reference.scores)
+  typed = jaxpso.track(sequence.frames, sequence.roi, config=HOMOGRAPHY["mi"],
+                       key=jax.random.key(0))
+  np.testing.assert_array_equal(typed.homographies, reference.homographies)
+  generated = jaxpso.track((frame for frame in sequence.frames), sequence.roi,
+                           config=HOMOGRAPHY["mi"], key=0, progress=True)
+  for field, value in reference._asdict().items():
+    if value is not None:
+      np.testing.assert_array_equal(getattr(generated, field), value, err_msg=field)
+  listed = jaxpso.track(list(sequence.frames), sequence.roi, config=HOMOGRAPHY["mi"], key=0)
+  np.testing.assert_array_equal(listed.homographies, reference.homographies)
+  assert "frame 8" in capsys.readouterr().err
+  other_key = jaxpso.track(sequence.frames, sequence.roi, config=HOMOGRAPHY["mi"], key=1)
+  assert not np.array_equal(other_key.homographies, reference.homographies)
+
+
+def test_one_trace_per_config_and_no_retrace_for_new_frames():
+  # A config first used on an 8-frame sequence adds exactly one compiled
+  # program: every frame after the first reuses it (stable carry dtypes).
+  for dof in PLANE:
+    _, compiled = _tracked(PLANE[dof], PLANE_SEQUENCE[dof])
+    assert compiled == 1, (dof, compiled)
+  _tracked(HOMOGRAPHY["mi"], "default")
+  size = track_module._frame_step._cache_size()
+  other = _sequence("other")
+  x, y, w, h = other.roi
+  # New frames (fewer of them), another key, the ROI moved (same size): no new program.
+  jaxpso.track(other.frames, other.roi, config=HOMOGRAPHY["mi"], key=3)
+  jaxpso.track(other.frames[:3], (x - 10, y + 5, w, h), config=HOMOGRAPHY["mi"], key=4)
+  jaxpso.track(np.round(other.frames * 255).astype(np.uint8), other.roi,
+               config=HOMOGRAPHY["mi"])
+  assert track_module._frame_step._cache_size() == size
+
+
+# --- loss of track ----------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("similarity", SIMILARITIES)
+def test_frames_of_noise_are_lost_and_the_target_reacquired(similarity):
+  sequence = _sequence("slow")
+  frames = sequence.frames.copy()
+  hidden = [4, 5]
+  frames[hidden] = np.random.default_rng(0).uniform(0.0, 1.0, (len(hidden),) + FRAME_SHAPE)
+  try:
+    result = jaxpso.track(frames, sequence.roi, config=HOMOGRAPHY[similarity], key=0)
+  except ValueError as error:  # a data-dependent failure must not raise
+    pytest.fail(f"{similarity}: track raised on frames of noise: {error}")
+  for field, value in result._asdict().items():
+    if value is not None and field != "quality":  # quality may be -inf (no valid warp)
+      assert np.all(np.isfinite(value)), (similarity, field, value)
+  errors = _corner_rms(result.corners, sequence.corners)
+  np.testing.assert_array_equal(result.status[:4], jaxpso.TrackStatus.TRACKED)
+  assert errors[:4].max() < 1.0, errors
+  # The target is hidden: LOST, and the last good estimate (frame 3) is kept.
+  np.testing.assert_array_equal(
+      result.status[hidden], jaxpso.TrackStatus.LOST,
+      err_msg=f"{similarity}: frames of pure noise not declared LOST;"
+              f" quality {result.quality[hidden]}, corner error {errors[hidden]} px")
+  for frame in hidden:
+    np.testing.assert_array_equal(result.homographies[frame], result.homographies[3])
+  # Back in view at frame 6 (it moved ≤ 2.4 px since frame 3): re-acquired
+  # within two frames and followed to the end.
+  later = slice(7, None)
+  assert np.all(np.isin(result.status[later], [jaxpso.TrackStatus.TRACKED,
+                                               jaxpso.TrackStatus.RECOVERED])), result.status
+  assert errors[later].max() < 2.0, (
+      f"{similarity}: not re-acquired after the noise; corner errors {errors} px,"
+      f" status {result.status}, quality {result.quality}")
+
+
+@pytest.mark.parametrize("similarity", SIMILARITIES)
+def test_a_blank_frame_is_lost(similarity):
+  # A frame with no texture at all, at the template's mean intensity: nothing
+  # matches the template, so its quality must be far below any sensible
+  # lost_quality (MI and NCC give 0) and the frame LOST, whatever the similarity.
+  sequence = _sequence("default")
+  x, y, w, h = sequence.roi
+  blank = np.full(FRAME_SHAPE, sequence.frames[0, y:y + h, x:x + w].mean(), np.float32)
+  config = HOMOGRAPHY[similarity]
+  result = jaxpso.track(np.stack([sequence.frames[0], blank]), sequence.roi, config=config,
+                        key=0)
+  status = jaxpso.TrackStatus(result.status[1]).name
+  assert result.quality[1] < 0.25, (
+      f"{similarity}: a textureless frame has quality {result.quality[1]:.3f}"
+      f" (status {status}, lost_quality {config.lost_quality})")
+  assert result.status[1] == jaxpso.TrackStatus.LOST, status
+  # Frame 0 is the host's exact ROI homography, frame 1 the kept estimate
+  # mapped again in float32: equal up to rounding.
+  np.testing.assert_allclose(result.homographies[1], result.homographies[0], atol=1e-5)
+
+
+# --- input formats ----------------------------------------------------------------------------
+
+
+def test_uint8_and_colour_frames_agree_with_float_grey():
+  sequence = _sequence("default")
+  grey, _ = _tracked(HOMOGRAPHY["mi"], "default")
+  frames8 = np.round(sequence.frames * 255).astype(np.uint8)
+  grey8 = jaxpso.track(frames8, sequence.roi, config=HOMOGRAPHY["mi"], key=0)
+  colour8 = jaxpso.track(np.repeat(frames8[..., None], 3, axis=-1), sequence.roi,
+                         config=HOMOGRAPHY["mi"], key=0)
+  colour = jaxpso.track(np.repeat(sequence.frames[..., None], 3, axis=-1), sequence.roi,
+                        config=HOMOGRAPHY["mi"], key=0)
+  # Measured: colour vs grey ≤ 3e-4 px (the luma weights sum to 1 up to
+  # rounding), uint8 vs float 0.02–0.1 px (quantisation moves the optimum).
+  np.testing.assert_allclose(colour.corners, grey.corners, atol=0.01)
+  np.testing.assert_allclose(colour8.corners, grey8.corners, atol=0.01)
+  np.testing.assert_allclose(grey8.corners, grey.corners, atol=0.3)
+  assert _corner_rms(grey8.corners, sequence.corners).max() < 1.0
+
+
+def test_roi_given_as_corners_matches_the_box():
+  sequence = _sequence("default")
+  box, _ = _tracked(HOMOGRAPHY["mi"], "default")
+  quad = jaxpso.track(sequence.frames, _box_corners(sequence.roi), config=HOMOGRAPHY["mi"], key=0)
+  np.testing.assert_allclose(quad.corners[0], _box_corners(sequence.roi), atol=1e-4)
+  np.testing.assert_allclose(quad.corners, box.corners, atol=0.05)
+  assert _corner_rms(quad.corners, sequence.corners).max() < 1.0
+
+
+# --- bad input --------------------------------------------------------------------------------
+
+
+def _frames():
+  return _sequence("default").frames[:2]
+
+
+def _with_nan(index):
+  frames = _frames().copy()
+  frames[index, 10, 20] = np.nan
+  return frames
+
+
+ROI = (56, 36, 48, 48)  # the sequences' own ROI, centred in frame 0
+
+
+def _case(case_id, call, error, name):
+  return pytest.param(call, error, name, id=case_id)
+
+
+@pytest.mark.parametrize("call, error, name", [
+    _case("no-frames", lambda: jaxpso.track([], ROI, config=CONFIG), ValueError, "frames"),
+    _case("empty-array", lambda: jaxpso.track(np.zeros((0,) + FRAME_SHAPE, np.float32), ROI,
+                                              config=CONFIG), ValueError, "frames"),
+    _case("one-2d-frame", lambda: jaxpso.track(_frames()[0], ROI, config=CONFIG), ValueError,
+          "frames"),
+    _case("not-iterable", lambda: jaxpso.track(5, ROI, config=CONFIG), TypeError, "frames"),
+    _case("sizes-differ", lambda: jaxpso.track([_frames()[0], _frames()[1][:-1]], ROI,
+                                               config=CONFIG), ValueError, r"frames\[1\]"),
+    _case("nan-frame-0", lambda: jaxpso.track(_with_nan(0), ROI, config=CONFIG), ValueError,
+          r"frames\[0\]"),
+    _case("nan-frame-1", lambda: jaxpso.track(_with_nan(1), ROI, config=CONFIG), ValueError,
+          r"frames\[1\]"),
+    _case("int-dtype", lambda: jaxpso.track(_frames().astype(np.int32), ROI, config=CONFIG),
+          TypeError, r"frames\[0\]"),
+    _case("roi-zero-width", lambda: jaxpso.track(_frames(), (56, 36, 0, 48), config=CONFIG),
+          ValueError, "roi"),
+    _case("roi-fractional-width", lambda: jaxpso.track(_frames(), (56, 36, 47.5, 48),
+                                                       config=CONFIG), ValueError, "roi"),
+    _case("roi-past-the-right", lambda: jaxpso.track(_frames(), (130, 36, 48, 48),
+                                                     config=CONFIG), ValueError, "roi"),
+    _case("roi-negative", lambda: jaxpso.track(_frames(), (-1, 36, 48, 48), config=CONFIG),
+          ValueError, "roi"),
+    _case("roi-3-numbers", lambda: jaxpso.track(_frames(), (56, 36, 48), config=CONFIG),
+          ValueError, "roi"),
+    _case("roi-3-corners", lambda: jaxpso.track(_frames(), np.zeros((3, 2)), config=CONFIG),
+          ValueError, "roi"),
+    _case("roi-nan", lambda: jaxpso.track(_frames(), (np.nan, 36, 48, 48), config=CONFIG),
+          ValueError, "roi"),
+    _case("roi-self-crossing", lambda: jaxpso.track(_frames(), _box_corners(ROI)[[0, 2, 1, 3]],
+                                                    config=CONFIG), ValueError, "roi"),
+    _case("roi-too-small", lambda: jaxpso.track(_frames(), (56, 36, 6, 6), config=CONFIG),
+          ValueError, "roi"),
+    _case("roi-textureless", lambda: jaxpso.track(np.full((2,) + FRAME_SHAPE, 0.5, np.float32),
+                                                  ROI, config=CONFIG),
+          ValueError, "roi.*textureless"),
+    _case("camera-2x2", lambda: jaxpso.track(_frames(), ROI, config=PLANE[6], camera=np.eye(2)),
+          ValueError, "camera"),
+    _case("camera-singular", lambda: jaxpso.track(_frames(), ROI, config=PLANE[6],
+                                                  camera=np.zeros((3, 3))), ValueError, "camera"),
+    _case("camera-nan", lambda: jaxpso.track(_frames(), ROI, config=PLANE[6],
+                                             camera=np.full((3, 3), np.nan)), ValueError,
+          "camera"),
+    _case("normal-zero", lambda: jaxpso.track(_frames(), ROI, config=PLANE[6],
+                                              plane_normal=(0.0, 0.0, 0.0)), ValueError,
+          "plane_normal"),
+    _case("normal-nan", lambda: jaxpso.track(_frames(), ROI, config=PLANE[6],
+                                             plane_normal=(np.nan, 0.0, 1.0)), ValueError,
+          "plane_normal"),
+    _case("normal-2d", lambda: jaxpso.track(_frames(), ROI, config=PLANE[6],
+                                            plane_normal=(0.0, 1.0)), ValueError, "plane_normal"),
+    _case("normal-away", lambda: jaxpso.track(_frames(), ROI, config=PLANE[6],
+                                              plane_normal=(0.0, 0.0, -1.0)), ValueError,
+          "plane_normal"),
+    _case("config-dict", lambda: jaxpso.track(_frames(), ROI, config={"similarity": "mi"}),
+          TypeError, "config"),
+    _case("camera-for-homography", lambda: jaxpso.track(_frames(), ROI, config=CONFIG,
+                                                        camera=np.eye(3)), ValueError, "camera"),
+    _case("normal-for-homography", lambda: jaxpso.track(_frames(), ROI, config=CONFIG,
+                                                        plane_normal=(0.0, 0.0, 1.0)),
+          ValueError, "plane_normal"),
+])
+def test_bad_input_names_the_argument(call, error, name):
+  compiled = track_module._frame_step._cache_size()
+  with pytest.raises(error, match=name):
+    call()
+  assert track_module._frame_step._cache_size() == compiled  # raised before compiling
