@@ -78,13 +78,6 @@ class _Carry(NamedTuple):
   frame: jax.Array  # () int32 index of the next frame
 
 
-def _quality(loss, constants: _Constants, config: align.TrackConfig):
-  """Loss → quality in (-inf, 1]; 1 for a perfect match."""
-  if config.similarity == "ssd":  # 0 for a flat patch at the template's mean
-    return 1.0 - loss / constants.self_score
-  return loss / constants.self_score  # both negative: MI (or NCC) relative to its own
-
-
 def _inverse(m):
   """Inverse of a homography or a rigid pose."""
   return plane.invert_pose(m) if m.shape == (4, 4) else homography.inverse(m)
@@ -119,7 +112,7 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
                              config=config)
   found = search(base=start, seed=seed, radius=jnp.float32(config.search_radius),
                  max_iterations=config.max_iterations)
-  quality = _quality(found.loss, constants, config)
+  quality = align.quality(found.loss, constants.self_score, config)
   weak = ~(quality >= config.lost_quality)
 
   def recover(_):
@@ -130,7 +123,7 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
     return jax.tree.map(lambda a, b: jnp.where(keep, a, b), found, wide), carry.estimate
 
   found, base = jax.lax.cond(weak, recover, lambda _: (found, start), None)
-  quality = _quality(found.loss, constants, config)
+  quality = align.quality(found.loss, constants.self_score, config)
   lost = ~(quality >= config.lost_quality) | ~jnp.all(jnp.isfinite(found.u))
   status = jnp.where(lost, TrackStatus.LOST,
                      jnp.where(weak, TrackStatus.RECOVERED, TrackStatus.TRACKED)).astype(jnp.int32)
@@ -251,9 +244,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   if float(jnp.std(template)) < 1e-3:
     raise ValueError(f"roi {roi!r} is textureless (intensity std < 1e-3): nothing to track")
   prepared = align.prepare_template(template, config)
-  loss_of, _ = align._measure(config)
-  self_score = (jnp.var(template) if config.similarity == "ssd"
-                else loss_of(prepared.reference(0), template, jnp.ones(shape, bool)))
+  self_score = align.self_score(template, prepared, config)
   geometry = None
   if config.motion == "plane":
     geometry = _plane_geometry(camera, plane_normal, frame0.shape, h0, shape, config.dof)
