@@ -74,10 +74,11 @@ class TrackConfig:
       the template's own MI, NCC, or 1 − SSD / template variance)
       stays below this after the recovery search.
     retry_quality: `align` runs a second swarm (another seed,
-      `recovery_scale` × the iterations) when the quality of its first
-      result is below this, and keeps the better result (at σ = 16 and 20 px,
-      50 trials each: every success had quality >= 0.99, the failures
-      0.16–0.92; a wider second box did worse than the same box).
+      `recovery_scale` × the particles and the iterations, same box) when the
+      quality of its first result is below this, and keeps the better result
+      (at σ = 16 and 20 px, 50 trials each: every success had quality >= 0.99,
+      the failures 0.16–0.92; a wider second box did worse than the same box,
+      the larger swarm better than more iterations alone).
     recovery_scale: `track`'s recovery search has this many times the radius
       and iterations of the normal search.
   """
@@ -240,7 +241,8 @@ class Registration(NamedTuple):
 
 
 def register(frame: list, frame_shapes: list, template: Template, base, geometry, seed,
-             radius, *, config: TrackConfig, max_iterations: int) -> Registration:
+             radius, *, config: TrackConfig, max_iterations: int,
+             swarm_size: int | None = None) -> Registration:
   """The swarm at the coarsest level, then Gauss–Newton down to full resolution.
 
   Args:
@@ -250,6 +252,7 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
     geometry: `motion.Plane` for motion "plane", else None.
     seed: (2,) uint32 swarm seed.  radius: () search half-width, pixels.
     config: settings.  max_iterations: the swarm's iteration cap (static).
+    swarm_size: particles (static); `config.swarm_size` if None.
   """
   loss_of, _ = _measure(config)
   coarse = config.levels - 1
@@ -272,7 +275,8 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
 
   dim = motion.dimension(config.motion, config.dof)
   box = jnp.full(dim, radius, jnp.float32)
-  pso_config = dataclasses.replace(config.pso_config(), max_iterations=max_iterations)
+  pso_config = dataclasses.replace(config.pso_config(), max_iterations=max_iterations,
+                                   swarm_size=swarm_size or config.swarm_size)
   found = pso._run(seed, -box, box, None, pso.default_hparams(config.variant), None, None,
                    jnp.zeros(dim, jnp.float32), box, loss_fn=swarm_loss, config=pso_config)
 
@@ -322,7 +326,8 @@ def _align(image, template, init_homography, seed, *, config: TrackConfig) -> Al
   def retry(_):
     # A poor match: a second, independent swarm.
     wide = search(seed ^ jnp.uint32(0x5BD1E995), jnp.float32(config.search_radius),
-                  max_iterations=config.max_iterations * config.recovery_scale)
+                  max_iterations=config.max_iterations * config.recovery_scale,
+                  swarm_size=config.swarm_size * config.recovery_scale)
     keep = found.loss <= wide.loss
     best = jax.tree.map(lambda a, b: jnp.where(keep, a, b), found, wide)
     return best._replace(num_iterations=found.num_iterations + wide.num_iterations,
