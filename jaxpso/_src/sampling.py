@@ -89,15 +89,19 @@ def pack_quads(image) -> jax.Array:
                     image[1:, 1:]], axis=-1).reshape(-1, 4)
 
 
-def _gather(quads, frame_shape, homographies, shape):
-  """The 2×2 neighbourhoods (..., h, w, 4), fractional offsets and validity."""
+def _interpolate(quads, frame_shape, x, y):
+  """Bilinear values at frame coordinates x, y (any shape), clamped into the frame."""
   height, width = frame_shape
-  grid = template_grid(shape)
-  x, y, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
-  x0 = jnp.clip(jnp.floor(x), 0, width - 2)
-  y0 = jnp.clip(jnp.floor(y), 0, height - 2)
-  index = y0.astype(jnp.int32) * (width - 1) + x0.astype(jnp.int32)
-  return jnp.take(quads, index, axis=0, mode="clip"), x - x0, y - y0, valid
+  x = jnp.clip(x, 0.0, width - 1.0)
+  y = jnp.clip(y, 0.0, height - 1.0)
+  x0 = jnp.minimum(jnp.floor(x), width - 2)
+  y0 = jnp.minimum(jnp.floor(y), height - 2)
+  q = jnp.take(quads, y0.astype(jnp.int32) * (width - 1) + x0.astype(jnp.int32), axis=0,
+               mode="clip")
+  fx, fy = x - x0, y - y0
+  top = q[..., 0] + fx * (q[..., 1] - q[..., 0])
+  bottom = q[..., 2] + fx * (q[..., 3] - q[..., 2])
+  return top + fy * (bottom - top)
 
 
 def sample_quads(quads, frame_shape, homographies, shape):
@@ -105,11 +109,9 @@ def sample_quads(quads, frame_shape, homographies, shape):
 
   The tracker packs a frame once and samples it at every PSO iteration.
   """
-  q, fx, fy, valid = _gather(quads, frame_shape, homographies, shape)
-  top = q[..., 0] + fx * (q[..., 1] - q[..., 0])
-  bottom = q[..., 2] + fx * (q[..., 3] - q[..., 2])
-  patches = top + fy * (bottom - top)
-  return jnp.where(valid, patches, 0.0), valid
+  grid = template_grid(shape)
+  x, y, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
+  return jnp.where(valid, _interpolate(quads, frame_shape, x, y), 0.0), valid
 
 
 def sample_with_gradient(quads, frame_shape, homographies, shape):
@@ -129,16 +131,7 @@ def sample_with_gradient(quads, frame_shape, homographies, shape):
   x, y, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
 
   def at(px, py):
-    px = jnp.clip(px, 0.0, width - 1.0)
-    py = jnp.clip(py, 0.0, height - 1.0)
-    x0 = jnp.minimum(jnp.floor(px), width - 2)
-    y0 = jnp.minimum(jnp.floor(py), height - 2)
-    q = jnp.take(quads, y0.astype(jnp.int32) * (width - 1) + x0.astype(jnp.int32), axis=0,
-                 mode="clip")
-    fx, fy = px - x0, py - y0
-    top = q[..., 0] + fx * (q[..., 1] - q[..., 0])
-    bottom = q[..., 2] + fx * (q[..., 3] - q[..., 2])
-    return top + fy * (bottom - top)
+    return _interpolate(quads, frame_shape, px, py)
 
   step_x = jnp.minimum(x + 1.0, width - 1.0) - jnp.maximum(x - 1.0, 0.0)
   step_y = jnp.minimum(y + 1.0, height - 1.0) - jnp.maximum(y - 1.0, 0.0)
