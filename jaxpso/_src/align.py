@@ -263,15 +263,16 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
   def at_level(u, level):
     return homography.homography_to_level(to_h(u), level)
 
-  def score(u, level):
-    h = at_level(u, level)
-    level_shape = template.pyramid[level].shape
-    patches, mask = sampling.sample_quads(frame[level], frame_shapes[level], h, level_shape)
+  def warp_loss(level, h, patches, mask):
+    """The loss of warps h (…, 3, 3) at `level`; +inf where not admissible."""
     loss = loss_of(template.reference(level), patches, mask)
-    return jnp.where(motion.admissible(h, level_shape), loss, jnp.inf)
+    return jnp.where(motion.admissible(h, template.pyramid[level].shape), loss, jnp.inf)
 
   def swarm_loss(u, _):  # u: (n, D)
-    return score(u, coarse)
+    h = at_level(u, coarse)
+    patches, mask = sampling.sample_quads(frame[coarse], frame_shapes[coarse], h,
+                                          template.pyramid[coarse].shape)
+    return warp_loss(coarse, h, patches, mask)
 
   dim = motion.dimension(config.motion, config.dof)
   box = jnp.full(dim, radius, jnp.float32)
@@ -281,13 +282,11 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
                    jnp.zeros(dim, jnp.float32), box, loss_fn=swarm_loss, config=pso_config)
 
   def refine_at(level, u):
-    reference = template.reference(level)
     return refine.gauss_newton(
         u, frame[level], frame_shapes[level], template.pyramid[level],
         template.bins[level] if config.similarity == "mi" else None,
-        lambda patch, mask: loss_of(reference, patch, mask),
-        functools.partial(at_level, level=level), config.refine_steps, config.similarity,
-        config.min_valid)
+        functools.partial(warp_loss, level), functools.partial(at_level, level=level),
+        config.refine_steps, config.similarity)
 
   # The swarm's best is refined from the coarsest level down; the start joins
   # it at the level below full resolution (the coarse levels' optimum can be a

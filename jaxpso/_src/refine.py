@@ -21,13 +21,12 @@ the warped points times the derivative of the warped points with respect to the 
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 
 from jaxpso._src import homography
-from jaxpso._src import motion
 from jaxpso._src import sampling
 
 # Damping of the first step, relative to the diagonal of JᵀJ; multiplied by
@@ -67,12 +66,10 @@ def adapted_template(template, bin_weights, patch, mask, similarity: str):
 
 
 def gauss_newton(u0, quads, frame_shape, template, bin_weights, loss_of: Callable,
-                 to_level_homography: Callable, steps: int, similarity: str,
-                 min_valid: float):
+                 to_level_homography: Callable, steps: int, similarity: str):
   """Levenberg–Marquardt steps on ‖I(W(p; u)) − T̃‖², accepted by the similarity.
 
-  A step whose warp is not `motion.admissible` counts as a failure.  Each
-  step re-estimates T̃ at the current estimate and solves the damped
+  Each step re-estimates T̃ at the current estimate and solves the damped
   normal equations; a step is kept only when it lowers `loss_of` (the
   similarity being maximised), otherwise the damping grows and the step is
   retried from the best estimate, so the refinement never loses ground (and
@@ -84,12 +81,12 @@ def gauss_newton(u0, quads, frame_shape, template, bin_weights, loss_of: Callabl
     frame_shape: (H, W) of the level's image.
     template: (h, w) template at this level.
     bin_weights: (h, w, bins) its soft bins ("mi") or None.
-    loss_of: (patch (h, w), mask (h, w)) → () loss of the similarity.
+    loss_of: (homography (3, 3), patch (h, w), mask (h, w)) → () loss of the
+      similarity (+inf for a warp that is not admissible).
     to_level_homography: u (D,) → (3, 3) template → level-image homography.
     steps: iterations at most (one warp, one loss and one D×D solve each);
       fewer once a step moves less than 1/100 px or the damping explodes.
     similarity: which photometric model T̃ follows.
-    min_valid: fraction of template pixels that must land in the image.
 
   Returns:
     ((D,) the lowest-loss parameters visited (u0 if no step helped), () that
@@ -110,8 +107,7 @@ def gauss_newton(u0, quads, frame_shape, template, bin_weights, loss_of: Callabl
     m = valid.reshape(-1).astype(value.dtype)
     jac = (gx.reshape(-1, 1) * dpoints[:, 0] + gy.reshape(-1, 1) * dpoints[:, 1]) * m[:, None]
     residual = (value - target).reshape(-1) * m
-    loss = jnp.where(motion.admissible(h, shape), loss_of(value, valid), jnp.inf)
-    return loss, jac.T @ jac, jac.T @ residual
+    return loss_of(h, value, valid), jac.T @ jac, jac.T @ residual
 
   d = u0.shape[0]
 
@@ -139,7 +135,6 @@ def gauss_newton(u0, quads, frame_shape, template, bin_weights, loss_of: Callabl
            jnp.eye(d, dtype=u0.dtype), zero, jnp.asarray(_DAMPING, u0.dtype), zero + jnp.inf)
   taken, u, best_u, best_loss, *_ = jax.lax.while_loop(running, body, carry)
   h = to_level_homography(u)
-  last = jnp.where(motion.admissible(h, shape),
-                   loss_of(*sampling.sample_quads(quads, frame_shape, h, shape)), jnp.inf)
+  last = loss_of(h, *sampling.sample_quads(quads, frame_shape, h, shape))
   better = last < best_loss
   return jnp.where(better, u, best_u), jnp.where(better, last, best_loss), taken + 1

@@ -23,13 +23,11 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxpso._src import align
-from jaxpso._src import checks
 from jaxpso._src import homography
 from jaxpso._src import motion
 from jaxpso._src import plane
 from jaxpso._src import pso
 from jaxpso._src import sampling
-from jaxpso._src import similarity
 
 
 class TrackStatus(enum.IntEnum):
