@@ -311,6 +311,14 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
                       num_evaluations=found.num_evaluations + evaluations)
 
 
+def better_of(first: Registration, second: Registration) -> Registration:
+  """The registration with the lower loss (the first on ties), counting both searches."""
+  keep = first.loss <= second.loss
+  best = jax.tree.map(lambda a, b: jnp.where(keep, a, b), first, second)
+  return best._replace(num_iterations=first.num_iterations + second.num_iterations,
+                       num_evaluations=first.num_evaluations + second.num_evaluations)
+
+
 @functools.partial(jax.jit, static_argnames=("config",))
 def _align(image, template, init_homography, seed, *, config: TrackConfig) -> AlignResult:
   _, sign = _measure(config)
@@ -327,10 +335,7 @@ def _align(image, template, init_homography, seed, *, config: TrackConfig) -> Al
     wide = search(seed ^ jnp.uint32(0x5BD1E995), jnp.float32(config.search_radius),
                   max_iterations=config.max_iterations * config.recovery_scale,
                   swarm_size=config.swarm_size * config.recovery_scale)
-    keep = found.loss <= wide.loss
-    best = jax.tree.map(lambda a, b: jnp.where(keep, a, b), found, wide)
-    return best._replace(num_iterations=found.num_iterations + wide.num_iterations,
-                         num_evaluations=found.num_evaluations + wide.num_evaluations)
+    return better_of(found, wide)
 
   found = jax.lax.cond(weak, retry, lambda _: found, None)
   finite = jnp.isfinite(found.loss)

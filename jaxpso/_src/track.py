@@ -117,8 +117,8 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
     wide = search(base=carry.estimate, seed=seed ^ jnp.uint32(0x5BD1E995),
                   radius=jnp.float32(config.search_radius * config.recovery_scale),
                   max_iterations=config.max_iterations * config.recovery_scale)
-    keep = found.loss <= wide.loss
-    return jax.tree.map(lambda a, b: jnp.where(keep, a, b), found, wide), carry.estimate
+    base = jnp.where(found.loss <= wide.loss, start, carry.estimate)
+    return align.better_of(found, wide), base
 
   found, base = jax.lax.cond(weak, recover, lambda _: (found, start), None)
   quality = align.quality(found.loss, constants.self_score, config)
