@@ -129,9 +129,10 @@ def test_no_public_function_takes_a_histogram_option_positionally():
           assert param.kind is inspect.Parameter.KEYWORD_ONLY, (module.__name__, name)
 
 
-def test_import_does_not_pull_in_opencv_or_matplotlib():
+@pytest.mark.parametrize("modules", ["jaxpso", "jaxpso.io, jaxpso.cli"])
+def test_import_does_not_pull_in_opencv_or_matplotlib(modules):
   root = pathlib.Path(jaxpso.__file__).parent.parent
-  code = ("import jaxpso, sys; "
+  code = (f"import {modules}, sys; "
           "assert 'cv2' not in sys.modules and 'matplotlib' not in sys.modules, "
           "sorted(m for m in ('cv2', 'matplotlib') if m in sys.modules)")
   result = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True,
