@@ -34,6 +34,12 @@ def machine() -> dict:
   }
 
 
+def machine_line(info: dict) -> str:
+  """The results tables' line naming the machine, software, date and command of `info`."""
+  return (f"Machine: {info['cpu']}, {info['cores']} cores, {info['device']}; jax {info['jax']};"
+          f" date {info['date']}.  Command: `{info['command']}`.")
+
+
 def median_seconds(fn, *args, repeats: int = 7, warmup: int = 2) -> float:
   """Median wall time of `fn(*args)` after warm-up, blocking on the result."""
   for _ in range(warmup):

@@ -99,8 +99,7 @@ def main():
   lines = [
       "# Frequency of convergence (Baker–Matthews protocol): jaxpso.align vs OpenCV ECC",
       "",
-      f"Machine: {info['cpu']}, {info['cores']} cores, {info['device']}; jax {info['jax']};"
-      f" date {info['date']}.  Command: `{info['command']}`.",
+      common.machine_line(info),
       "",
       f"{args.trials} trials per σ and condition; 100×100 templates at random places of the"
       " embedded camera and brick images; success = corner RMS error <= 1 px.  jaxpso:"

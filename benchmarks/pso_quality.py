@@ -150,8 +150,7 @@ def main():
   lines = [
       "# PSO quality: median best loss over seeds at a fixed budget",
       "",
-      f"Machine: {info['cpu']}, {info['cores']} cores; jax {info['jax']}; date {info['date']}."
-      f"  Command: `{info['command']}`.",
+      common.machine_line(info),
       "",
       f"{DIM}-D problems, {SWARM} particles × {ITERATIONS + 1} swarm evaluations ="
       f" {SWARM * (ITERATIONS + 1)} evaluations, median over {args.seeds} seeds (lower is"

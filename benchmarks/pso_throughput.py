@@ -131,8 +131,7 @@ def main():
   lines = [
       "# PSO throughput: evaluations per second on 6-D Rastrigin",
       "",
-      f"Machine: {info['cpu']}, {info['cores']} cores, {info['device']}; jax {info['jax']};"
-      f" date {info['date']}.  Command: `{info['command']}`.",
+      common.machine_line(info),
       "",
       "Evaluations = swarm × (iterations + 1), including the initial evaluation; jaxpso runs"
       " with only `max_iterations` active.  M evals/s from the median over interleaved rounds;"

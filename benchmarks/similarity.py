@@ -195,8 +195,7 @@ def main():
   lines = [
       "# Swarm evaluation throughput: warp_image + similarity",
       "",
-      f"Machine: {info['cpu']}, {info['cores']} cores, {info['device']}; jax {info['jax']};"
-      f" date {info['date']}.  Command: `{info['command']}`.",
+      common.machine_line(info),
       "",
       "100×100 template in a 512×512 image, MI with 8 bins (the default).  M px/s = template"
       " pixels × candidates / s (median of repeated runs).  *call*: one jitted call per swarm"

@@ -121,8 +121,7 @@ def main() -> None:
     markdown = "\n".join([
         "# Similarity surfaces under a non-linear intensity change",
         "",
-        (f"Machine: {info['cpu']}, {info['cores']} cores, {info['device']}; jax {info['jax']};"
-         f" date {info['date']}.  Command: `{info['command']}`."),
+        common.machine_line(info),
         "",
         (f"100×100 template from the embedded camera image; the frame is 1 − √image shifted"
          f" by {TRUE_SHIFT} px; {n} candidate shifts (radius {radius}) per measure, one"

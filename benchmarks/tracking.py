@@ -65,8 +65,7 @@ def main():
   lines = [
       "# Tracking synthetic 6-DOF sequences (jaxpso.track)",
       "",
-      f"Machine: {info['cpu']}, {info['cores']} cores, {info['device']}; jax {info['jax']};"
-      f" date {info['date']}.  Command: `{info['command']}`.",
+      common.machine_line(info),
       "",
       f"{args.frames} frames per sequence, jumps at 1/3 and 2/3, gain drift 0.1, noise 0.01,"
       " 100×100 region of the embedded camera image, `TrackConfig()` defaults except the"
