@@ -367,6 +367,8 @@ def _case(case_id, call, error, name):
           ValueError, "roi"),
     _case("roi-self-crossing", lambda: jaxpso.track(_frames(), _box_corners(ROI)[[0, 2, 1, 3]],
                                                     config=CONFIG), ValueError, "roi"),
+    _case("roi-mirrored", lambda: jaxpso.track(_frames(), _box_corners(ROI)[::-1],
+                                               config=CONFIG), ValueError, "roi.*TL, TR, BR, BL"),
     _case("roi-too-small", lambda: jaxpso.track(_frames(), (56, 36, 6, 6), config=CONFIG),
           ValueError, "roi"),
     _case("roi-textureless", lambda: jaxpso.track(np.full((2,) + FRAME_SHAPE, 0.5, np.float32),

@@ -110,6 +110,17 @@ def to_homography(u, base, geometry: Plane | None, shape, motion: str, dof: int)
 MAX_AREA_RATIO = 16.0
 
 
+def corner_turns(quad) -> jax.Array:
+  """(…, 4, 2) corners TL, TR, BR, BL → (…, 4) cross products of successive edges.
+
+  All positive for a convex quad with the template's own orientation (x
+  right, y down); a folded quad mixes signs, a mirrored one is all negative.
+  """
+  edges = jnp.roll(quad, -1, axis=-2) - quad
+  following = jnp.roll(edges, -1, axis=-2)
+  return edges[..., 0] * following[..., 1] - edges[..., 1] * following[..., 0]
+
+
 def admissible(h, shape) -> jax.Array:
   """Whether homographies keep the template a convex quad of sensible size.
 
@@ -125,12 +136,9 @@ def admissible(h, shape) -> jax.Array:
   """
   rect = homography.rect_corners(shape)
   quad, w = homography.apply_to_points(h, rect)
-  edges = jnp.roll(quad, -1, axis=-2) - quad
-  turns = (edges[..., 0] * jnp.roll(edges, -1, axis=-2)[..., 1]
-           - edges[..., 1] * jnp.roll(edges, -1, axis=-2)[..., 0])
   area = 0.5 * jnp.sum(quad[..., 0] * jnp.roll(quad, -1, axis=-2)[..., 1]
                        - jnp.roll(quad, -1, axis=-2)[..., 0] * quad[..., 1], axis=-1)
   template_area = (shape[0] - 1.0) * (shape[1] - 1.0)
   ratio = area / template_area
-  return (jnp.all(w > 0, axis=-1) & jnp.all(turns > 0, axis=-1)
+  return (jnp.all(w > 0, axis=-1) & jnp.all(corner_turns(quad) > 0, axis=-1)
           & (ratio > 1 / MAX_AREA_RATIO) & (ratio < MAX_AREA_RATIO))

@@ -170,10 +170,10 @@ def _template_geometry(roi, frame_shape):
     w = 0.5 * (np.linalg.norm(corners[1] - corners[0]) + np.linalg.norm(corners[2] - corners[3]))
     h = 0.5 * (np.linalg.norm(corners[3] - corners[0]) + np.linalg.norm(corners[2] - corners[1]))
     shape = (int(round(h)) + 1, int(round(w)) + 1)
-    edges = np.roll(corners, -1, axis=0) - corners
-    turns = edges[:, 0] * np.roll(edges, -1, axis=0)[:, 1] - edges[:, 1] * np.roll(edges, -1, axis=0)[:, 0]
-    if not (np.all(turns > 0) or np.all(turns < 0)) or min(shape) < 2:
-      raise ValueError(f"roi corners must form a convex, non-degenerate quadrilateral, got {roi!r}")
+    if not np.all(np.asarray(motion.corner_turns(corners)) > 0) or min(shape) < 2:
+      raise ValueError(
+          f"roi corners must form a convex, non-degenerate quadrilateral in the order TL, TR,"
+          f" BR, BL (clockwise on the image), got {roi!r}")
   if (corners.min(axis=0) < 0).any() or corners[:, 0].max() > width - 1 or corners[:, 1].max() > height - 1:
     raise ValueError(f"roi {roi!r} must lie inside frame 0 of shape {frame_shape}")
   rect = np.asarray(homography.rect_corners(shape), np.float64)
