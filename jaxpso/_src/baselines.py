@@ -1,0 +1,554 @@
+"""Classic gradient-based image alignment, the baselines the swarm is compared with.
+
+`register(method, ...)` aligns a template coarse to fine from u = 0 (the
+start) with one of
+
+* "fa": Lucas–Kanade forward additive, Gauss–Newton on the motion
+  parameters u themselves (any motion model);
+* "fc": forward compositional (Baker & Matthews, 2004): the Jacobian of an
+  incremental warp at the identity times the gradient of the warped image,
+  H ← H·ΔH;
+* "ic": inverse compositional (Baker & Matthews, 2004): the template's
+  gradient, steepest-descent images and Hessian computed once per level,
+  H ← H·ΔH⁻¹;
+* "esm": efficient second-order minimisation (Benhimane & Malis, 2004): the
+  mean of the template's and the warped image's gradients, with the increment
+  on the Lie algebra sl(3), H ← H·exp(A(δ));
+* "ha": hyperplane approximation (Jurie & Dhome, 2002): a linear predictor
+  from intensity differences to corner offsets, learned per level from random
+  perturbations of the template itself, H ← H·ΔH⁻¹;
+* "adam", "lbfgs": optax's Adam and L-BFGS (zoom line search) on the
+  registration loss itself, differentiated through the bilinear sampling and,
+  for "mi", the soft-binned histogram;
+* "ecc": OpenCV's `findTransformECC` (Evangelidis & Psarakis, 2008) through a
+  host callback.
+
+The Gauss–Newton methods minimise the sum of squared differences over the
+pixels that land in the frame (the others are masked out).  Every method
+iterates a `lax.while_loop` per pyramid level, at most `iterations` times,
+stopping once an update moves no parameter by more than 1/1000 of a level
+pixel.  The compositional methods compose level homographies and convert the
+result back to u through the template's corners, so all of them hand on the
+same u as the swarm does.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+
+from jaxpso._src import homography
+from jaxpso._src import sampling
+
+METHODS = ("pso", "fa", "fc", "ic", "esm", "ha", "adam", "lbfgs", "ecc")
+"""Names of the alignment methods; every one but "pso" is in this module."""
+
+_ANY_MOTION = ("homography", "plane")
+_HOMOGRAPHY = ("homography",)
+SUPPORTED = {
+    "fa": (_ANY_MOTION, ("ssd",)),
+    "fc": (_HOMOGRAPHY, ("ssd",)),
+    "ic": (_HOMOGRAPHY, ("ssd",)),
+    "esm": (_HOMOGRAPHY, ("ssd",)),
+    "ha": (_HOMOGRAPHY, ("ssd",)),
+    "adam": (_ANY_MOTION, ("mi", "ncc", "ssd")),
+    "lbfgs": (_ANY_MOTION, ("mi", "ncc", "ssd")),
+    "ecc": (_HOMOGRAPHY, ("ncc",)),
+}
+"""method → (motions, similarities) it supports, for every method but "pso"."""
+
+# A level stops once an update moves no parameter by more than this many
+# pixels of that level.
+_TOLERANCE = 1e-3
+# Adam's step size at level l is _ADAM_RATE · 2^l units of u (about that
+# many level pixels of corner motion per step), decayed exponentially to
+# _ADAM_DECAY times that over the level's iterations.
+_ADAM_RATE, _ADAM_DECAY = 0.5, 0.01
+# Hyperplane approximation: training perturbations move the template's corners
+# uniformly by up to _HA_RANGE of the level template's smaller side; the sample
+# points keep that margin (plus one pixel) from its border, at most _HA_POINTS
+# per side; _HA_TRAINING perturbations per sample point; ridge term relative to
+# the mean squared intensity difference.
+_HA_RANGE, _HA_POINTS, _HA_TRAINING, _HA_RIDGE = 0.125, 16, 4, 1e-3
+
+# Generators of sl(3) (Benhimane & Malis, 2004): translations, shears, scalings
+# and the two projective terms.
+_SL3 = np.array([
+    [[0, 0, 1], [0, 0, 0], [0, 0, 0]],
+    [[0, 0, 0], [0, 0, 1], [0, 0, 0]],
+    [[0, 1, 0], [0, 0, 0], [0, 0, 0]],
+    [[0, 0, 0], [1, 0, 0], [0, 0, 0]],
+    [[1, 0, 0], [0, -1, 0], [0, 0, 0]],
+    [[0, 0, 0], [0, -1, 0], [0, 0, 1]],
+    [[0, 0, 0], [0, 0, 0], [1, 0, 0]],
+    [[0, 0, 0], [0, 0, 0], [0, 1, 0]],
+], np.float32)
+
+
+def check_supported(method: str, motion: str, similarity: str) -> None:
+  """Raises ValueError unless `method` can align with `motion` and `similarity`.
+
+  "pso" supports every motion and similarity.
+
+  Args:
+    method: one of `METHODS`.
+    motion: motion model name ("homography" or "plane").
+    similarity: similarity name ("mi", "ncc" or "ssd").
+  """
+  if method not in METHODS:
+    raise ValueError(f"method must be one of {METHODS}, got {method!r}")
+  if method == "pso":
+    return
+  motions, similarities = SUPPORTED[method]
+  if motion not in motions or similarity not in similarities:
+    raise ValueError(
+        f"method {method!r} supports motions {motions} and similarities {similarities},"
+        f" got motion {motion!r} and similarity {similarity!r}")
+
+
+def _corners(h, shape) -> jax.Array:
+  """(3, 3) homography → (8,) its images of the template's corners TL, TR, BR, BL."""
+  mapped, _ = homography.apply_to_points(h, homography.rect_corners(shape))
+  return mapped.reshape(8)
+
+
+def _normalized(h) -> jax.Array:
+  """(3, 3) h / h[2, 2] with h[2, 2] exactly 1."""
+  return (h / h[2, 2]).at[2, 2].set(1.0)
+
+
+class _Level:
+  """One pyramid level of a registration: warps, Jacobians, composition.
+
+  Attributes:
+    index: the level (0 = full resolution).
+    quads: the level's packed image.  frame_shape: its (H_l, W_l).
+    template: (h_l, w_l) template at this level.
+    grid: (h_l·w_l, 2) template pixel centres.
+  """
+
+  def __init__(self, index, quads, frame_shape, template, to_h, full_shape, start, loss_at):
+    self.index = index
+    self.quads = quads
+    self.frame_shape = frame_shape
+    self.template = template
+    self.grid = sampling.template_grid(template.shape).reshape(-1, 2)
+    self._to_h = to_h
+    self._full_shape = full_shape  # the full-resolution template's (h, w)
+    self._start = start  # (8,) corners of to_h(0), full resolution
+    self._loss_at = loss_at
+
+  def loss(self, u) -> jax.Array:
+    """() the registration loss at this level for parameters u (D,)."""
+    h = self.h(u)
+    patch, mask = sampling.sample_quads(self.quads, self.frame_shape, h, self.template.shape)
+    return self._loss_at(self.index, h, patch, mask)
+
+  def h(self, u) -> jax.Array:
+    """(D,) parameters → (3, 3) template → image homography at this level."""
+    return homography.homography_to_level(self._to_h(u), self.index)
+
+  def warp(self, h):
+    """The image and its gradient at the grid mapped by h: (h_l, w_l) each, and the mask."""
+    return sampling.sample_with_gradient(self.quads, self.frame_shape, h, self.template.shape)
+
+  def point_jacobian(self, h, increment) -> jax.Array:
+    """(N, 2, 8) derivative of the points h·increment(δ)·x at δ = 0."""
+    def points(delta):
+      return homography.apply_to_points(h @ increment(delta), self.grid)[0]
+    return jax.jacfwd(points)(jnp.zeros(8, self.grid.dtype))
+
+  def parameters(self, h) -> jax.Array:
+    """(8,) parameters u of motion "homography" of a full-resolution homography h (3, 3).
+
+    u are the offsets of the template's corners under h from those under
+    to_h(0), which is the homography motion's definition of u.
+    """
+    return _corners(h, self._full_shape) - self._start
+
+  def compose(self, u, increment) -> jax.Array:
+    """(8,) parameters of the level homography h(u)·increment (3, 3) (motion "homography")."""
+    return self.parameters(homography.homography_from_level(self.h(u) @ increment, self.index))
+
+
+def _steepest_descent(gx, gy, point_jacobian) -> jax.Array:
+  """(N, D) image gradients (h, w each) times the (N, 2, D) Jacobian of the points."""
+  return gx.reshape(-1, 1) * point_jacobian[:, 0] + gy.reshape(-1, 1) * point_jacobian[:, 1]
+
+
+def _solve(hessian, gradient) -> jax.Array:
+  """hessian⁻¹ gradient with a relative Tikhonov term; 0 where that is not finite.
+
+  A flat patch (hessian 0) or one with no valid pixel gives a zero step.
+  """
+  d = hessian.shape[0]
+  ridge = 1e-6 * jnp.trace(hessian) / d + 1e-12
+  step = jnp.linalg.solve(hessian + ridge * jnp.eye(d, dtype=hessian.dtype), gradient)
+  return jnp.where(jnp.all(jnp.isfinite(step)), step, 0.0)
+
+
+def _gauss_newton_step(jacobian, residual, mask) -> jax.Array:
+  """(D,) step −(JᵀJ)⁻¹Jᵀr over the valid pixels; jacobian (N, D), residual, mask (h, w)."""
+  m = mask.reshape(-1).astype(jacobian.dtype)
+  weighted = jacobian * m[:, None]
+  return -_solve(weighted.T @ jacobian, weighted.T @ residual.reshape(-1))
+
+
+def _forward_additive(level: _Level, u, iterations):
+  """Lucas–Kanade: u ← u + Δu with the Jacobian of the warped points w.r.t. u."""
+  del u, iterations
+
+  def points(params):
+    return homography.apply_to_points(level.h(params), level.grid)[0]
+
+  def update(u, state):
+    values, gx, gy, mask = level.warp(level.h(u))
+    jacobian = _steepest_descent(gx, gy, jax.jacfwd(points)(u))
+    return u + _gauss_newton_step(jacobian, values - level.template, mask), state, 1
+
+  return update, ()
+
+
+def _corner_increment(shape):
+  """δ (8,) → (3, 3) homography moving the level template's corners by δ pixels (C(0) = I)."""
+  return functools.partial(homography.corner_offsets_to_homography, shape=shape)
+
+
+def _lie_increment(shape):
+  """The ESM increment on sl(3), about one pixel of corner motion per unit of δ.
+
+  G(δ) = N⁻¹ exp(Σ δᵢ Aᵢ / s) N with N centring the template's coordinates
+  and dividing them by its half-size s, so that a unit of every δᵢ moves the
+  template's corners by about one pixel.
+
+  Returns:
+    (G, its tangent N⁻¹ (I + Σ δᵢ Aᵢ / s) N, which has G's derivative at δ = 0
+    and is cheaper to differentiate), each δ (8,) → (3, 3).
+  """
+  h, w = shape
+  s = max(h - 1, w - 1) / 2.0
+  to_unit = np.array([[1 / s, 0, -(w - 1) / (2 * s)], [0, 1 / s, -(h - 1) / (2 * s)], [0, 0, 1]])
+  from_unit = jnp.asarray(np.linalg.inv(to_unit), jnp.float32)
+  to_unit = jnp.asarray(to_unit, jnp.float32)
+
+  def algebra(delta):
+    return jnp.tensordot(delta / s, jnp.asarray(_SL3), axes=1)
+
+  def increment(delta):
+    return from_unit @ jax.scipy.linalg.expm(algebra(delta)) @ to_unit
+
+  def tangent(delta):
+    return from_unit @ (jnp.eye(3, dtype=delta.dtype) + algebra(delta)) @ to_unit
+
+  return increment, tangent
+
+
+def _template_gradient(template):
+  """Central-difference gradient (h, w) × 2 of a template (one-sided at its border)."""
+  _, gx, gy, _ = sampling.sample_with_gradient(sampling.pack_quads(template), template.shape,
+                                               jnp.eye(3, dtype=template.dtype), template.shape)
+  return gx, gy
+
+
+def _forward_compositional(level: _Level, u, iterations):
+  """Forward compositional: ∇(I∘W)·∂C/∂δ at δ = 0, H ← H·C(δ), C the corner increment.
+
+  The gradient of the warped image is taken by the chain rule, the image's
+  gradient at the warped points times the derivative of the warp.
+  """
+  del u, iterations
+  increment = _corner_increment(level.template.shape)
+
+  def update(u, state):
+    h = level.h(u)
+    values, gx, gy, mask = level.warp(h)
+    jacobian = _steepest_descent(gx, gy, level.point_jacobian(h, increment))
+    delta = _gauss_newton_step(jacobian, values - level.template, mask)
+    return level.compose(u, increment(delta)), state, 1
+
+  return update, ()
+
+
+def _inverse_compositional(level: _Level, u, iterations):
+  """Inverse compositional: ∇T·∂C/∂δ and its Hessian once, H ← H·C(δ)⁻¹.
+
+  Pixels that leave the frame drop out of the residual only; the Hessian
+  stays the precomputed one (a smaller step while part of the template is
+  outside, never a singular system).
+  """
+  del u, iterations
+  increment = _corner_increment(level.template.shape)
+  jacobian = _steepest_descent(*_template_gradient(level.template),
+                               level.point_jacobian(jnp.eye(3, dtype=level.template.dtype),
+                                                    increment))
+  hessian = jacobian.T @ jacobian
+
+  def update(u, state):
+    h = level.h(u)
+    patch, mask = sampling.sample_quads(level.quads, level.frame_shape, h, level.template.shape)
+    residual = jnp.where(mask, patch - level.template, 0.0).reshape(-1)
+    delta = _solve(hessian, jacobian.T @ residual)
+    return level.compose(u, homography.inverse(increment(delta))), state, 1
+
+  return update, ()
+
+
+def _esm(level: _Level, u, iterations):
+  """ESM: Gauss–Newton with ½(∇T + ∇(I∘W))·∂G/∂δ at δ = 0, H ← H·G(δ), G on sl(3)."""
+  del u, iterations
+  increment, tangent = _lie_increment(level.template.shape)
+  template_jacobian = _steepest_descent(
+      *_template_gradient(level.template),
+      level.point_jacobian(jnp.eye(3, dtype=level.template.dtype), tangent))
+
+  def update(u, state):
+    h = level.h(u)
+    values, gx, gy, mask = level.warp(h)
+    image_jacobian = _steepest_descent(gx, gy, level.point_jacobian(h, tangent))
+    delta = _gauss_newton_step(0.5 * (image_jacobian + template_jacobian),
+                               values - level.template, mask)
+    return level.compose(u, increment(delta)), state, 1
+
+  return update, ()
+
+
+def _hyperplane(level: _Level, u, iterations):
+  """Jurie–Dhome: δ = A·(I(W(xₛ)) − T(xₛ)) on sample points xₛ, H ← H·C(δ)⁻¹.
+
+  A (8 × points, kept transposed) is the ridge least-squares fit of corner
+  offsets δ to the intensity differences they cause on the template itself,
+  T(C(δ)·xₛ) − T(xₛ), over random δ (fixed PRNG key) within the sample
+  points' margin.  δ is in pixels of the level, C the corner increment.
+  While some sample points are outside the frame, A is refitted on the
+  others (a zero difference at a missing point would read as "no motion
+  there" and bias the prediction).
+  """
+  del u, iterations
+  template = level.template
+  rows, cols = template.shape
+  reach = _HA_RANGE * (min(rows, cols) - 1)
+  margin = reach + 1.0
+  side = [min(_HA_POINTS, int(n - 1 - 2 * margin) + 1) for n in (rows, cols)]
+  # Sample-grid index (j, i) → template point (margin + j·step_x, margin + i·step_y).
+  to_points = jnp.asarray(
+      [[(cols - 1 - 2 * margin) / max(side[1] - 1, 1), 0, margin],
+       [0, (rows - 1 - 2 * margin) / max(side[0] - 1, 1), margin], [0, 0, 1]], template.dtype)
+  increment = _corner_increment(template.shape)
+  quads = sampling.pack_quads(template)
+  reference, _ = sampling.sample_quads(quads, template.shape, to_points, side)
+  count = _HA_TRAINING * side[0] * side[1]
+  deltas = jax.random.uniform(jax.random.key(0), (count, 8), template.dtype, -reach, reach)
+  moved, _ = sampling.sample_quads(quads, template.shape, increment(deltas) @ to_points, side)
+  differences = (moved - reference).reshape(count, -1)
+  gram = differences.T @ differences
+  correlation = differences.T @ deltas
+  ridge = (_HA_RIDGE * jnp.trace(gram) / gram.shape[0] + 1e-12) * jnp.eye(gram.shape[0],
+                                                                          dtype=gram.dtype)
+
+  def fit(valid):
+    """(points, 8) Aᵀ from the sample points where valid (points,) is 1; 0 rows elsewhere."""
+    predictor = jnp.linalg.solve(gram * valid[:, None] * valid + ridge,
+                                 correlation * valid[:, None])
+    return jnp.where(jnp.all(jnp.isfinite(predictor)), predictor, 0.0)
+
+  predictor = fit(jnp.ones(gram.shape[0], gram.dtype))
+
+  def update(u, state):
+    patch, mask = sampling.sample_quads(level.quads, level.frame_shape, level.h(u) @ to_points,
+                                        side)
+    valid = mask.reshape(-1)
+    current = jax.lax.cond(jnp.all(valid), lambda: predictor,
+                           lambda: fit(valid.astype(gram.dtype)))
+    delta = jnp.where(valid, (patch - reference).reshape(-1), 0.0) @ current
+    return level.compose(u, homography.inverse(increment(delta))), state, 1
+
+  return update, ()
+
+
+def _finite(tree):
+  """The tree with non-finite entries set to 0."""
+  return jax.tree.map(lambda g: jnp.where(jnp.isfinite(g), g, 0.0), tree)
+
+
+def _adam(level: _Level, u, iterations):
+  """optax.adam on the loss, step size _ADAM_RATE · 2^level decaying to _ADAM_DECAY of it."""
+  schedule = optax.exponential_decay(_ADAM_RATE * 2.0 ** level.index, iterations, _ADAM_DECAY)
+  optimizer = optax.adam(schedule)
+
+  def update(u, state):
+    gradient = _finite(jax.grad(level.loss)(u))
+    step, state = optimizer.update(gradient, state)
+    return u + step, state, 1
+
+  return update, optimizer.init(u)
+
+
+def _lbfgs(level: _Level, u, iterations):
+  """optax.lbfgs with its zoom line search, no learning rate.
+
+  The first direction is the negative gradient, cut to unit length if longer
+  (one unit of u, about one full-resolution pixel of corner motion); the
+  zoom line search starts every step at 1 and doubles or shrinks it.  Each
+  evaluation is one loss and gradient: the line search's, plus the initial
+  one (and a fresh one whenever the line search ended on a non-finite loss).
+  """
+  del iterations
+  optimizer = optax.lbfgs()
+  value_and_grad = optax.value_and_grad_from_state(level.loss)
+
+  def update(u, state):
+    stored = optax.tree.get(state, "value")
+    value, gradient = value_and_grad(u, state=state)
+    gradient = _finite(gradient)
+    step, state = optimizer.update(gradient, state, u, value=value, grad=gradient,
+                                   value_fn=level.loss)
+    searched = optax.tree.get(state, "num_linesearch_steps")
+    return u + step, state, (~jnp.isfinite(stored)).astype(jnp.int32) + searched
+
+  return update, optimizer.init(u)
+
+
+_SOLVERS = {"fa": _forward_additive, "fc": _forward_compositional, "ic": _inverse_compositional,
+            "esm": _esm, "ha": _hyperplane, "adam": _adam, "lbfgs": _lbfgs}
+
+
+def _iterate(update, u, state, iterations: int, tolerance: float):
+  """Runs u, state ← update(u, state) until `iterations` or a change below `tolerance`.
+
+  A non-finite update is discarded and ends the loop.
+
+  Returns:
+    ((D,) u, () int32 iterations, () int32 evaluations).
+  """
+  def body(carry):
+    count, u, state, _, evaluations = carry
+    new_u, state, spent = update(u, state)
+    new_u = jnp.where(jnp.all(jnp.isfinite(new_u)), new_u, u)
+    return count + 1, new_u, state, jnp.max(jnp.abs(new_u - u)), evaluations + spent
+
+  def running(carry):
+    count, _, _, change, _ = carry
+    return (count < iterations) & (change >= tolerance)
+
+  zero = jnp.zeros([], jnp.int32)
+  carry = (zero, u, state, jnp.asarray(jnp.inf, u.dtype), zero)
+  count, u, _, _, evaluations = jax.lax.while_loop(running, body, carry)
+  return u, count, evaluations
+
+
+def register(method: str, frame: list, frame_shapes: list, template_pyramid: list, to_h, dim: int,
+             loss_at, *, similarity: str, levels: int, iterations: int):
+  """Coarse-to-fine gradient alignment from u = 0, traceable inside `jax.jit`.
+
+  Static: method, similarity, levels, iterations, frame_shapes.
+
+  Args:
+    method: one of `SUPPORTED`.
+    frame: `levels` packed images (`sampling.pack_quads` of each Gaussian
+      pyramid level of the image, level 0 = full resolution), as made by
+      `align.prepare_frame`.
+    frame_shapes: their (H_l, W_l).
+    template_pyramid: `levels` (h_l, w_l) template levels
+      (`sampling.gaussian_pyramid` of the template).
+    to_h: u (dim,) → (3, 3) template → image homography at full resolution.
+    dim: number of motion parameters: 8 is motion "homography", fewer
+      "plane" (which only "fa", "adam" and "lbfgs" support).
+    loss_at: (level, h (…, 3, 3) level homographies, patches, mask from
+      `sampling.sample_quads`) → the loss to minimise at that level (+inf
+      where the warp is not admissible).
+    similarity: the similarity `loss_at` measures (checked against `SUPPORTED`).
+    levels: number of pyramid levels; the coarsest is aligned first.
+    iterations: iterations at most per level ("ecc" works at full
+      resolution only: its iteration cap).
+
+  Returns:
+    ((dim,) u, () loss_at(0, …) at u, () int32 iterations summed over the
+    levels, () int32 evaluations: image warps or loss evaluations, line
+    searches' included, and the final loss).
+  """
+  if method not in SUPPORTED:
+    raise ValueError(f"register takes a method of {tuple(SUPPORTED)}, got {method!r}")
+  check_supported(method, "homography" if dim == 8 else "plane", similarity)
+  full_shape = template_pyramid[0].shape
+  start = to_h(jnp.zeros(dim, jnp.float32))
+  start_corners = _corners(start, full_shape)
+  finest = _Level(0, frame[0], frame_shapes[0], template_pyramid[0], to_h, full_shape,
+                  start_corners, loss_at)
+  if method == "ecc":
+    u, count = _register_ecc(finest, start, iterations)
+    return u, finest.loss(u), count, count
+  u = jnp.zeros(dim, jnp.float32)
+  total_iterations = total_evaluations = jnp.zeros([], jnp.int32)
+  for index in reversed(range(levels)):
+    level = _Level(index, frame[index], frame_shapes[index], template_pyramid[index], to_h,
+                   full_shape, start_corners, loss_at)
+    update, state = _SOLVERS[method](level, u, iterations)
+    u, count, evaluations = _iterate(update, u, state, iterations, _TOLERANCE * 2.0 ** index)
+    total_iterations += count
+    total_evaluations += evaluations
+  return u, finest.loss(u), total_iterations, total_evaluations + 1
+
+
+def _unpack_quads(quads, shape) -> jax.Array:
+  """The (H, W) image `sampling.pack_quads` packed into `quads` ((H-1)·(W-1), 4)."""
+  rows, cols = shape
+  q = quads.reshape(rows - 1, cols - 1, 4)
+  top = jnp.concatenate([q[:, :, 0], q[:, -1:, 1]], axis=1)
+  bottom = jnp.concatenate([q[-1, :, 2], q[-1, -1:, 3]])
+  return jnp.concatenate([top, bottom[None]], axis=0)
+
+
+def _register_ecc(finest: _Level, start, iterations: int):
+  """`ecc` as a host callback on the full-resolution image and template → (u (8,), count)."""
+  shapes = (jax.ShapeDtypeStruct((3, 3), jnp.float32), jax.ShapeDtypeStruct((), jnp.bool_),
+            jax.ShapeDtypeStruct((), jnp.int32))
+  h, _, count = jax.pure_callback(
+      functools.partial(_ecc_host, iterations=iterations), shapes,
+      _unpack_quads(finest.quads, finest.frame_shape), finest.template,
+      _normalized(start), vmap_method="sequential")
+  return finest.parameters(h), count
+
+
+def _ecc_host(image, template, start, *, iterations: int):
+  """`ecc` with the callback's result types."""
+  h, converged, count = ecc(image, template, start, iterations=iterations)
+  return h, np.bool_(converged), np.int32(count)
+
+
+def ecc(image, template, init_homography, *, iterations: int = 100, eps: float = 1e-6,
+        gauss_filt_size: int = 5):
+  """OpenCV's enhanced-correlation-coefficient alignment on host arrays.
+
+  `cv2.findTransformECC(template, image, init_homography, MOTION_HOMOGRAPHY,
+  (COUNT | EPS, iterations, eps), None, gauss_filt_size)`.  OpenCV does not
+  report how many iterations it ran; `iterations` is returned in their place.
+
+  Args:
+    image: (H, W) float32 image.
+    template: (h, w) float32 template.
+    init_homography: (3, 3) template → image start.
+    iterations: iteration cap.  eps: stop once the update's norm is below it.
+    gauss_filt_size: Gaussian blur applied by OpenCV first.
+
+  Returns:
+    ((3, 3) float32 homography with h[2, 2] = 1, whether OpenCV finished
+    without an error, the iteration cap).  When OpenCV raises (it did not
+    converge) or returns a non-finite matrix: the start, False.
+  """
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  start = np.array(init_homography, np.float32)
+  criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, int(iterations), float(eps))
+  try:
+    _, h = cv2.findTransformECC(np.ascontiguousarray(template, np.float32),
+                                np.ascontiguousarray(image, np.float32), start.copy(),
+                                cv2.MOTION_HOMOGRAPHY, criteria, None, int(gauss_filt_size))
+  except cv2.error:
+    h = None
+  converged = h is not None and bool(np.all(np.isfinite(h)))
+  h = np.asarray(h if converged else start, np.float32)
+  return (h / h[2, 2]).astype(np.float32), converged, int(iterations)
