@@ -3,7 +3,8 @@
 Public: `track` (a region through a sequence), `align` (one registration:
 swarm + Gauss–Newton) with `TrackConfig`, and the modules `jaxpso.warp`
 (homographies, the plane-induced motion model, image sampling),
-`jaxpso.similarity` (SSD, ZNCC, mutual information),
+`jaxpso.similarity` (SSD, ZNCC, mutual information), `jaxpso.baselines`
+(the gradient methods, `TrackConfig(method=...)`),
 `jaxpso.pso` (the swarm optimizer), `jaxpso.synthetic` (test sequences) and
 `jaxpso.io` (videos, overlays, results files).
 Importing jaxpso does not import OpenCV or matplotlib.
@@ -13,9 +14,11 @@ from jaxpso._src.align import AlignResult
 from jaxpso._src.align import AlignStatus
 from jaxpso._src.align import TrackConfig
 from jaxpso._src.align import align
+from jaxpso._src.baselines import METHODS
 from jaxpso._src.track import TrackResult
 from jaxpso._src.track import TrackStatus
 from jaxpso._src.track import track
+from jaxpso import baselines
 from jaxpso import data
 from jaxpso import io
 from jaxpso import pso
@@ -25,5 +28,5 @@ from jaxpso import warp
 
 __version__ = "0.1.0"
 
-__all__ = ("AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus", "align",
-           "data", "io", "pso", "similarity", "synthetic", "track", "warp", "__version__")
+__all__ = ("METHODS", "AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus",
+           "align", "baselines", "data", "io", "pso", "similarity", "synthetic", "track", "warp", "__version__")

@@ -1,5 +1,7 @@
 """align: recovers perturbed homographies (Baker–Matthews style) on the embedded image."""
 
+import re
+
 import cv2
 import numpy as np
 import pytest
@@ -54,7 +56,8 @@ def test_result_fields_determinism_and_no_retrace():
   assert first.homography.shape == (3, 3) and float(first.homography[2, 2]) == 1.0
   assert int(first.status) == jaxpso.AlignStatus.SUCCESS
   assert float(first.score) > 0.3  # MI in nats of a matching 64×64 patch
-  assert int(first.num_evaluations) > CONFIG.swarm_size
+  # From a close start Gauss–Newton alone reaches accept_quality: no swarm.
+  assert 1 <= int(first.num_iterations) <= int(first.num_evaluations) < CONFIG.swarm_size
   compiled = align_module._align._cache_size()
   jaxpso.align(IMAGE * 0.9, TEMPLATE, _perturbed(4, 3.0), config=CONFIG, key=6)
   assert align_module._align._cache_size() == compiled
@@ -94,3 +97,40 @@ def test_a_template_outside_the_image_reports_no_valid_warp():
 def test_bad_input_names_the_argument(call, name):
   with pytest.raises((ValueError, TypeError), match=name):
     call()
+
+
+def test_without_accept_quality_the_swarm_always_runs():
+  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "accept_quality": None})
+  result = jaxpso.align(IMAGE, TEMPLATE, _perturbed(3, 3.0), config=config, key=5)
+  assert int(result.num_evaluations) > config.swarm_size
+  assert _corner_error(result.homography) < 1.0
+
+
+def test_a_gradient_baseline_behind_align():
+  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "method": "ic", "similarity": "ssd"})
+  errors = [_corner_error(jaxpso.align(IMAGE, TEMPLATE, _perturbed(seed, 2.0),
+                                       config=config).homography) for seed in range(3)]
+  assert max(errors) < 0.5, errors
+
+
+def test_method_ecc_gives_opencvs_numbers():
+  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "method": "ecc", "similarity": "ncc",
+                                 "max_iterations": 100})
+  start = _perturbed(2, 3.0)
+  ours = jaxpso.align(IMAGE, TEMPLATE, start, config=config)
+  criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-6)
+  _, theirs = cv2.findTransformECC(TEMPLATE, IMAGE, start.copy(), cv2.MOTION_HOMOGRAPHY,
+                                   criteria, None, 5)
+  np.testing.assert_allclose(np.asarray(ours.homography), theirs / theirs[2, 2], rtol=1e-5,
+                             atol=1e-5)
+  assert int(ours.num_evaluations) >= 1
+
+
+@pytest.mark.parametrize("fields, message", [
+    ({"method": "newton"}, "'pso', 'fa'"),
+    ({"method": "ic"}, "similarities ('ssd',)"),
+    ({"method": "ecc", "similarity": "ncc", "motion": "plane"}, "motions ('homography',)"),
+])
+def test_unsupported_methods_list_what_is_supported(fields, message):
+  with pytest.raises(ValueError, match=re.escape(message)):
+    jaxpso.TrackConfig(**fields)

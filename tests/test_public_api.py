@@ -19,7 +19,7 @@ from jaxpso import similarity
 from jaxpso import synthetic
 from jaxpso import warp
 
-_MODULES = (warp, similarity, pso, synthetic, data, jaxpso.io)
+_MODULES = (warp, similarity, pso, synthetic, data, jaxpso.io, jaxpso.baselines)
 _SRC = pathlib.Path(jaxpso.__file__).parent / "_src"
 
 
@@ -40,9 +40,9 @@ def _attribute_docstrings():
 
 def test_package_surface():
   assert jaxpso.__doc__
-  assert set(jaxpso.__all__) == {"AlignResult", "AlignStatus", "TrackConfig", "TrackResult",
-                                 "TrackStatus", "align", "data", "io", "pso", "similarity",
-                                 "synthetic", "track", "warp", "__version__"}
+  assert set(jaxpso.__all__) == {"METHODS", "AlignResult", "AlignStatus", "TrackConfig",
+                                 "TrackResult", "TrackStatus", "align", "baselines", "data", "io",
+                                 "pso", "similarity", "synthetic", "track", "warp", "__version__"}
   for name in ("AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus",
                "align", "track"):
     assert getattr(jaxpso, name).__doc__

@@ -335,7 +335,7 @@ def _check_loss(loss_fn, args, dim: int, dtype, config: PSOConfig) -> None:
 def _as_seed(key) -> jax.Array:
   """(2,) uint32 seed drawn from an int seed, a raw uint32[2] key or a typed key."""
   if isinstance(key, int):
-    key = jax.random.key(key)
+    return _int_seed(key)
   key = jnp.asarray(key)
   if not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
     if key.dtype == jnp.uint32 and key.shape == (2,):
@@ -347,6 +347,12 @@ def _as_seed(key) -> jax.Array:
   if key.shape != ():
     raise ValueError(f"key must be a single key, got shape {key.shape}")
   return jax.random.bits(key, (2,), jnp.uint32)
+
+
+@functools.lru_cache(maxsize=256)
+def _int_seed(key: int) -> jax.Array:
+  """`_as_seed` of an int (cached: deriving it is a few eager dispatches)."""
+  return _as_seed(jax.random.key(key))
 
 
 # Random streams: one per use within an iteration.

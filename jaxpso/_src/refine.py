@@ -13,10 +13,12 @@ maximised, so the refinement keeps its invariances:
 * "ssd": T̃ = T.
 
 T̃ is re-estimated at every step, and a step is accepted only when it
-improves the similarity itself, not the SSD.  The Jacobian is the
-image gradient (central differences, read from the same packed table) at
-the warped points times the derivative of the warped points with respect to the motion parameters
-(forward mode), so any motion model of `jaxpso._src.motion` refines alike.
+improves the similarity itself, not the SSD.  The Jacobian is
+the image gradient (central differences, read from the same packed table) at
+the warped points times the warped points' derivative with respect to the
+homography (closed form) times the homography's derivative with respect to
+the motion parameters (forward mode), so any motion model of
+`jaxpso._src.motion` refines alike.
 """
 
 from __future__ import annotations
@@ -32,9 +34,10 @@ from jaxpso._src import sampling
 # Damping of the first step, relative to the diagonal of JᵀJ; multiplied by
 # _GROW after a rejected step and by _SHRINK after an accepted one.
 _DAMPING, _GROW, _SHRINK = 1e-3, 10.0, 0.3
-# Stop when a proposed step moves no parameter by more than _TOLERANCE units
-# (1/100 px of corner motion) or the damping has grown past _MAX_DAMPING.
-_TOLERANCE, _MAX_DAMPING = 1e-2, 1e6
+# Stop after this many rejected steps in a row (the damping then barely
+# changes the step any more: with the old rule, damping > 1e6, most coarse
+# levels spent 5–8 of their 10 steps on rejections).
+_MAX_REJECTED = 3
 
 
 def adapted_template(template, bin_weights, patch, mask, similarity: str):
@@ -65,8 +68,9 @@ def adapted_template(template, bin_weights, patch, mask, similarity: str):
   return template
 
 
-def gauss_newton(u0, quads, frame_shape, template, bin_weights, loss_of: Callable,
-                 to_level_homography: Callable, steps: int, similarity: str):
+def gauss_newton(u0, quads, frame_shape, grid, template, bin_weights, loss_of: Callable,
+                 to_level_homography: Callable, steps: int, similarity: str,
+                 tolerance: float):
   """Levenberg–Marquardt steps on ‖I(W(p; u)) − T̃‖², accepted by the similarity.
 
   Each step re-estimates T̃ at the current estimate and solves the damped
@@ -79,40 +83,49 @@ def gauss_newton(u0, quads, frame_shape, template, bin_weights, loss_of: Callabl
     u0: (D,) starting motion parameters.
     quads: the level's image packed by `sampling.pack_quads`.
     frame_shape: (H, W) of the level's image.
-    template: (h, w) template at this level.
-    bin_weights: (h, w, bins) its soft bins ("mi") or None.
+    grid: (h, w, 2) template points used (all the level's pixels, or a
+      selection shaped (1, n, 2)), in level pixels.
+    template: (h, w) template values at `grid`.
+    bin_weights: (h, w, bins) their soft bins ("mi") or None.
     loss_of: (homography (3, 3), patch (h, w), mask (h, w)) → () loss of the
       similarity (+inf for a warp that is not admissible).
     to_level_homography: u (D,) → (3, 3) template → level-image homography.
     steps: iterations at most (one warp, one loss and one D×D solve each);
-      fewer once a step moves less than 1/100 px or the damping explodes.
+      fewer once a step moves less than `tolerance` or after
+      `_MAX_REJECTED` rejected steps in a row.
     similarity: which photometric model T̃ follows.
+    tolerance: stop once a proposed step moves no parameter by more than
+      this (in units of u).
 
   Returns:
     ((D,) the lowest-loss parameters visited (u0 if no step helped), () that
     loss, () int32 loss evaluations made).
   """
-  shape = template.shape
-  grid = sampling.template_grid(shape).reshape(-1, 2)
-
-  def points(u):
-    return homography.apply_to_points(to_level_homography(u), grid)[0]
+  flat = grid.reshape(-1, 2)
+  points = jnp.concatenate([flat, jnp.ones_like(flat[:, :1])], axis=1)  # (h·w, 3)
 
   def linearise(u):
     """Loss at u, and the normal equations (JᵀJ, Jᵀr) of the adapted SSD."""
     h = to_level_homography(u)
-    value, gx, gy, valid = sampling.sample_with_gradient(quads, frame_shape, h, shape)
+    value, gx, gy, valid = sampling.sample_with_gradient(quads, frame_shape, h, grid)
     target = adapted_template(template, bin_weights, value, valid, similarity)
-    dpoints = jax.jacfwd(points)(u)  # (h·w, 2, D)
+    # J = ∂I(W(p))/∂h · ∂h/∂u: the first in closed form per pixel (h·w, 9),
+    # the second (9, D) by forward mode through the motion model.
+    mapped, w = homography.apply_to_points(h, flat)
     m = valid.reshape(-1).astype(value.dtype)
-    jac = (gx.reshape(-1, 1) * dpoints[:, 0] + gy.reshape(-1, 1) * dpoints[:, 1]) * m[:, None]
+    inv_w = m / jnp.where(valid.reshape(-1), w, 1.0)
+    gx, gy = gx.reshape(-1) * inv_w, gy.reshape(-1) * inv_w
+    across = -(gx * mapped[:, 0] + gy * mapped[:, 1])
+    by_entry = jnp.concatenate([gx[:, None] * points, gy[:, None] * points,
+                                across[:, None] * points], axis=1)
+    jac = by_entry @ jax.jacfwd(to_level_homography)(u).reshape(9, -1)
     residual = (value - target).reshape(-1) * m
     return loss_of(h, value, valid), jac.T @ jac, jac.T @ residual
 
   d = u0.shape[0]
 
   def body(carry):
-    step, u, best_u, best_loss, normal, gradient, damping, _ = carry
+    step, u, best_u, best_loss, normal, gradient, damping, rejected, _ = carry
     loss, a, g = linearise(u)
     better = loss < best_loss
     best_u = jnp.where(better, u, best_u)
@@ -120,21 +133,23 @@ def gauss_newton(u0, quads, frame_shape, template, bin_weights, loss_of: Callabl
     normal = jnp.where(better, a, normal)
     gradient = jnp.where(better, g, gradient)
     damping = jnp.where(better, damping * _SHRINK, damping * _GROW)
+    rejected = jnp.where(better, 0, rejected + 1)
     diagonal = jnp.diagonal(normal)
     lhs = normal + jnp.diag(damping * diagonal + 1e-9 * (1.0 + jnp.max(diagonal)))
     delta = jnp.linalg.solve(lhs, -gradient)
     delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
-    return step + 1, best_u + delta, best_u, best_loss, normal, gradient, damping, delta
+    return step + 1, best_u + delta, best_u, best_loss, normal, gradient, damping, rejected, delta
 
   def running(carry):
-    step, *_, damping, delta = carry
-    return (step < steps) & (jnp.max(jnp.abs(delta)) > _TOLERANCE) & (damping < _MAX_DAMPING)
+    step, *_, rejected, delta = carry
+    return (step < steps) & (jnp.max(jnp.abs(delta)) > tolerance) & (rejected < _MAX_REJECTED)
 
   zero = jnp.zeros(d, u0.dtype)
   carry = (jnp.zeros([], jnp.int32), u0, u0, jnp.asarray(jnp.inf, u0.dtype),
-           jnp.eye(d, dtype=u0.dtype), zero, jnp.asarray(_DAMPING, u0.dtype), zero + jnp.inf)
+           jnp.eye(d, dtype=u0.dtype), zero, jnp.asarray(_DAMPING, u0.dtype),
+           jnp.zeros([], jnp.int32), zero + jnp.inf)
   taken, u, best_u, best_loss, *_ = jax.lax.while_loop(running, body, carry)
   h = to_level_homography(u)
-  last = loss_of(h, *sampling.sample_quads(quads, frame_shape, h, shape))
+  last = loss_of(h, *sampling.sample_points(quads, frame_shape, h, grid))
   better = last < best_loss
   return jnp.where(better, u, best_u), jnp.where(better, last, best_loss), taken + 1

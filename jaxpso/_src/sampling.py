@@ -109,13 +109,21 @@ def sample_quads(quads, frame_shape, homographies, shape):
 
   The tracker packs a frame once and samples it at every PSO iteration.
   """
-  grid = template_grid(shape)
+  return sample_points(quads, frame_shape, homographies, template_grid(shape))
+
+
+def sample_points(quads, frame_shape, homographies, grid):
+  """`sample_quads` at any (h, w, 2) array of template points (x, y).
+
+  Returns:
+    (patches, mask), each (..., h, w); patches are 0 where invalid.
+  """
   x, y, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
   return jnp.where(valid, _interpolate(quads, frame_shape, x, y), 0.0), valid
 
 
-def sample_with_gradient(quads, frame_shape, homographies, shape):
-  """`sample_quads` plus the central-difference image gradient at the samples.
+def sample_with_gradient(quads, frame_shape, homographies, grid):
+  """`sample_points` plus the central-difference image gradient at the samples.
 
   The gradient image's bilinear interpolation at p equals the central
   difference of the interpolated image, (I(p + e) − I(p − e)) / 2 with unit
@@ -123,11 +131,13 @@ def sample_with_gradient(quads, frame_shape, homographies, shape):
   gradient image is built or packed.  (Where p ± e leaves the frame the
   difference is one-sided.)
 
+  Args:
+    grid: (h, w, 2) template points, e.g. `template_grid(shape)`.
+
   Returns:
     (patches, grad_x, grad_y, mask), each (..., h, w); zeros where invalid.
   """
   height, width = frame_shape
-  grid = template_grid(shape)
   x, y, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
 
   def at(px, py):

@@ -41,8 +41,10 @@ class SoftBins(NamedTuple):
 
   Attributes:
     weights: (..., h, w, bins) cubic B-spline weights of every pixel.
-    lo: lower end of the intensity range.
-    hi: upper end of the intensity range.
+    lo: lower end of the intensity range the patches are binned over
+      (`soft_bins` bins the template over the same range; a tracker may bin
+      the template over its own range and the image over another).
+    hi: upper end of that range.
   """
   weights: jax.Array
   lo: float
@@ -70,7 +72,11 @@ def _check_bins(bins) -> int:
   return bins
 
 
-def _check_range(value_range) -> tuple[float, float]:
+def _check_range(value_range) -> tuple:
+  """(lo, hi) as floats; traced values (inside jit) pass unchecked."""
+  if isinstance(value_range, (tuple, list)) and len(value_range) == 2 and any(
+      isinstance(v, jax.core.Tracer) for v in value_range):
+    return tuple(value_range)
   try:
     lo, hi = (float(v) for v in value_range)
   except (TypeError, ValueError):

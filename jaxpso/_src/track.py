@@ -2,13 +2,15 @@
 
 Frame 0's region is the template.  Every later frame is one call of one
 compiled program (`_frame_step`): the frame's pyramid, a start chosen between
-the constant-velocity prediction and the previous estimate, the swarm and the
-Gauss–Newton refinement (`align.register`), a quality check and, when the
-quality is low, a recovery search around the last good estimate with a wider
-box and more iterations (a `lax.cond`, compiled once with the rest).  A frame
-whose quality stays low is LOST: the last good estimate is kept and the
-motion prediction is reset.  For motion "plane" the camera pose is
-accumulated, T̂ ← T(x) · T̂.
+the constant-velocity prediction and the previous estimate, the registration
+of `align.register` (Gauss–Newton from the start; when that falls short of
+`TrackConfig.accept_quality`, the swarm and Gauss–Newton from its best), a
+quality check and, when the quality is low, a recovery search around the last
+good estimate with a wider box and more iterations (a `lax.cond`, compiled
+once with the rest).  A frame whose quality stays low is LOST: the last good
+estimate is kept and the motion prediction is reset.  For motion "plane" the
+camera pose is accumulated, T̂ ← T(x) · T̂.  With a gradient baseline
+(`TrackConfig.method`) the registration is that method's, without recovery.
 """
 
 from __future__ import annotations
@@ -101,15 +103,21 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
   if config.predict:
     predicted = carry.velocity @ carry.estimate
     both = jnp.stack([to_h(zero, predicted), to_h(zero, carry.estimate)])
-    losses = loss_of(template.reference(0), *sampling.sample_quads(
-        frame[0], shapes[0], both, shape))
+    patches, masks = sampling.sample_quads(frame[0], shapes[0], both, shape)
+    losses = loss_of(template.reference(0, align.intensity_range(patches[1], masks[1])),
+                     patches, masks)
     start = jnp.where(losses[0] <= losses[1], predicted, carry.estimate)
 
   seed = _frame_seed(constants.seed, carry.frame)
   search = functools.partial(align.register, frame, shapes, template, geometry=constants.geometry,
                              config=config)
+  def good(loss, threshold):
+    return align.quality(loss, constants.self_score, config) >= threshold
+
   found = search(base=start, seed=seed, radius=jnp.float32(config.search_radius),
-                 max_iterations=config.max_iterations)
+                 max_iterations=config.max_iterations,
+                 accept=(None if config.accept_quality is None
+                         else functools.partial(good, threshold=config.accept_quality)))
   quality = align.quality(found.loss, constants.self_score, config)
   weak = ~(quality >= config.lost_quality)
 
@@ -120,7 +128,9 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
     base = jnp.where(found.loss <= wide.loss, start, carry.estimate)
     return align.better_of(found, wide), base
 
-  found, base = jax.lax.cond(weak, recover, lambda _: (found, start), None)
+  base = start
+  if config.method == "pso":
+    found, base = jax.lax.cond(weak, recover, lambda _: (found, start), None)
   quality = align.quality(found.loss, constants.self_score, config)
   lost = ~(quality >= config.lost_quality) | ~jnp.all(jnp.isfinite(found.u))
   status = jnp.where(lost, TrackStatus.LOST,
