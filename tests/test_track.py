@@ -208,8 +208,12 @@ def test_same_key_is_bit_identical_and_iterables_match_arrays(capsys):
   listed = jaxpso.track(list(sequence.frames), sequence.roi, config=HOMOGRAPHY["mi"], key=0)
   np.testing.assert_array_equal(listed.homographies, reference.homographies)
   assert "frame 8" in capsys.readouterr().err
+  # The key seeds the swarm only: frames where Gauss–Newton from the previous
+  # estimate was accepted (fewer evaluations than one swarm iteration) match.
   other_key = jaxpso.track(sequence.frames, sequence.roi, config=HOMOGRAPHY["mi"], key=1)
-  assert not np.array_equal(other_key.homographies, reference.homographies)
+  accepted = reference.num_evaluations < HOMOGRAPHY["mi"].swarm_size
+  assert accepted[1:].any()
+  np.testing.assert_array_equal(other_key.homographies[accepted], reference.homographies[accepted])
 
 
 def test_one_trace_per_config_and_no_retrace_for_new_frames():
