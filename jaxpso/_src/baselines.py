@@ -154,7 +154,8 @@ class _Level:
 
   def warp(self, h):
     """The image and its gradient at the grid mapped by h: (h_l, w_l) each, and the mask."""
-    return sampling.sample_with_gradient(self.quads, self.frame_shape, h, self.template.shape)
+    return sampling.sample_with_gradient(self.quads, self.frame_shape, h,
+                                         sampling.template_grid(self.template.shape))
 
   def point_jacobian(self, h, increment) -> jax.Array:
     """(N, 2, 8) derivative of the points h·increment(δ)·x at δ = 0."""
@@ -250,7 +251,8 @@ def _lie_increment(shape):
 def _template_gradient(template):
   """Central-difference gradient (h, w) × 2 of a template (one-sided at its border)."""
   _, gx, gy, _ = sampling.sample_with_gradient(sampling.pack_quads(template), template.shape,
-                                               jnp.eye(3, dtype=template.dtype), template.shape)
+                                               jnp.eye(3, dtype=template.dtype),
+                                               sampling.template_grid(template.shape))
   return gx, gy
 
 
