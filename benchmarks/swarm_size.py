@@ -47,18 +47,16 @@ def _image(name: str) -> np.ndarray:
   return load_image(name)
 
 
-def protocol_trials(count: int, sigma: float, condition: str = "none"):
-  """convergence.py's trials, each image cut to CROP × CROP around its template.
+def protocol_trials(count: int, sigma: float):
+  """convergence.py's trials, the unchanged images cut to CROP × CROP around the template.
 
   Args:
     count: trials.  sigma: corner noise (px).
-    condition: a key of `convergence.CONDITIONS`, applied to the image.
 
   Yields:
     (image crop, template, start homography in crop pixels, template origin in
     crop pixels).
   """
-  change = convergence.CONDITIONS[condition]
   for name, origin, start in convergence.trials(count, sigma, int(sigma) * 7):
     image = _image(name)
     x, y = int(origin[0]), int(origin[1])
@@ -66,8 +64,8 @@ def protocol_trials(count: int, sigma: float, condition: str = "none"):
     limit = np.array(image.shape[::-1]) - CROP
     corner = np.clip(origin + (convergence.SIZE - CROP) / 2, 0, limit).astype(int)
     shift = np.float32([[1, 0, -corner[0]], [0, 1, -corner[1]], [0, 0, 1]])
-    crop = change(image[corner[1]:corner[1] + CROP, corner[0]:corner[0] + CROP])
-    yield crop.astype(np.float32), template, shift @ start, origin - corner
+    crop = image[corner[1]:corner[1] + CROP, corner[0]:corner[0] + CROP]
+    yield crop, template, shift @ start, origin - corner
 
 
 def swarm_iterations(result, config: jaxpso.TrackConfig) -> float:
@@ -84,13 +82,12 @@ def swarm_iterations(result, config: jaxpso.TrackConfig) -> float:
   return (int(result.num_evaluations) - int(result.num_iterations) - n - extra) / (n - 1)
 
 
-def run_protocol(config: jaxpso.TrackConfig, sigma: float, count: int,
-                 condition: str = "none") -> dict:
+def run_protocol(config: jaxpso.TrackConfig, sigma: float, count: int) -> dict:
   """`align` on `count` trials at σ; per-trial corner errors, seconds and counts.
 
   The first trial is aligned once more beforehand, untimed, to compile.
   """
-  cases = list(protocol_trials(count, sigma, condition))
+  cases = list(protocol_trials(count, sigma))
   crop, template, start, _ = cases[0]
   jax.block_until_ready(jaxpso.align(crop, template, start, config=config))
   out = {"error": [], "seconds": [], "evaluations": [], "swarm_iterations": []}

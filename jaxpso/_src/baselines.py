@@ -14,9 +14,10 @@ start) with one of
 * "esm": efficient second-order minimisation (Benhimane & Malis, 2004): the
   mean of the template's and the warped image's gradients, with the increment
   on the Lie algebra sl(3), H ← H·exp(A(δ));
-* "ha": hyperplane approximation (Jurie & Dhome, 2002): a linear predictor
+* "ha": hyperplane approximation (Jurie & Dhome, 2002): linear predictors
   from intensity differences to corner offsets, learned per level from random
-  perturbations of the template itself, H ← H·ΔH⁻¹;
+  perturbations of the template itself over ranges that halve from one
+  iteration to the next, H ← H·ΔH⁻¹;
 * "adam", "lbfgs": optax's Adam and L-BFGS (zoom line search) on the
   registration loss itself, differentiated through the bilinear sampling and,
   for "mi", the soft-binned histogram;
@@ -24,8 +25,10 @@ start) with one of
   host callback.
 
 The Gauss–Newton methods minimise the sum of squared differences over the
-pixels that land in the frame (the others are masked out).  Every method
-iterates a `lax.while_loop` per pyramid level, at most `iterations` times,
+pixels that land in the frame (the others are masked out).  A method aligns
+on the pyramid levels whose template is large enough for it
+(`pyramid_levels`), coarsest first, and iterates a `lax.while_loop` per
+level, at most `iterations` times,
 stopping once an update moves no parameter by more than 1/1000 of a level
 pixel.  The compositional methods compose level homographies and convert the
 result back to u through the template's corners, so all of them hand on the
@@ -64,16 +67,44 @@ SUPPORTED = {
 # A level stops once an update moves no parameter by more than this many
 # pixels of that level.
 _TOLERANCE = 1e-3
+# The coarsest level a method aligns on keeps at least this many template
+# pixels on its smaller side (_MIN_SIDE[method], else _MIN_SIDE_DEFAULT);
+# coarser levels of `levels` are skipped.  A template's pyramid is decimated
+# at its own phase and the image's is interpolated between samples 2^l
+# apart, so at a coarse level the two differ along every sharp edge and the
+# level's SSD optimum moves: on a 25 px level of a 100 px template one
+# Gauss–Newton step from the true warp went 5–9 px (full resolution) away.
+# Forward methods recover on the finer levels, IC (whose steps use the
+# template's gradient, not the image's) drifts away instead.  Success on
+# benchmarks/convergence.py's trials (100×100 templates, 50 per σ, SSD) at
+# σ = 2/4/8/12/16/20 px, levels 4 (13 px) / 3 (25 px) / 2 (50 px) / 1:
+#   ic   54/62/52/48/32/20 %, 88/78/68/72/48/26 %, 98/94/80/70/38/28 %,
+#        100/98/66/44/20/12 %;
+# and on 200×200 templates (30 per σ, σ = 4/8/16/24/32 px) IC with a 50 px
+# coarsest level 100/97/83/53/50 %, FC with a 25 px one
+# 100/100/97/70/60 %.
+_MIN_SIDE = {"ic": 64}
+_MIN_SIDE_DEFAULT = 20
 # Adam's step size at level l is _ADAM_RATE · 2^l units of u (about that
 # many level pixels of corner motion per step), decayed exponentially to
 # _ADAM_DECAY times that over the level's iterations.
 _ADAM_RATE, _ADAM_DECAY = 0.5, 0.01
-# Hyperplane approximation: training perturbations move the template's corners
-# uniformly by up to _HA_RANGE of the level template's smaller side; the sample
-# points keep that margin (plus one pixel) from its border, at most _HA_POINTS
-# per side; _HA_TRAINING perturbations per sample point; ridge term relative to
-# the mean squared intensity difference.
-_HA_RANGE, _HA_POINTS, _HA_TRAINING, _HA_RIDGE = 0.125, 16, 4, 1e-3
+# Hyperplane approximation: at every level a cascade of predictors trained on
+# corner motions uniform in ±r level pixels, r halving from the level's reach
+# while it stays >= _HA_FINEST; iteration i applies the i-th (the last from
+# then on).  The coarsest level's reach is _HA_RANGE of its template's
+# smaller side (the start's error), a finer level's _HA_FINE level pixels
+# (what the coarser level leaves: a level pixel there is two here).  The
+# sample points keep the reach (plus one pixel) from the template's border,
+# at most _HA_POINTS per side; _HA_TRAINING perturbations per sample point;
+# ridge term relative to the mean squared intensity difference.  With one
+# predictor per level trained on _HA_RANGE = 1/8 of every level's side
+# (±12 px of full-resolution motion at each level) the iterations at the
+# finer levels wandered by pixels: 30 % success at σ = 4 px on
+# benchmarks/convergence.py's trials (10); the cascade's figures are in
+# benchmarks/results/convergence.md.
+_HA_RANGE, _HA_FINE, _HA_FINEST = 0.25, 2.0, 0.5
+_HA_POINTS, _HA_TRAINING, _HA_RIDGE = 16, 4, 1e-3
 
 # Generators of sl(3) (Benhimane & Malis, 2004): translations, shears, scalings
 # and the two projective terms.
@@ -110,6 +141,29 @@ def check_supported(method: str, motion: str, similarity: str) -> None:
         f" got motion {motion!r} and similarity {similarity!r}")
 
 
+def pyramid_levels(method: str, shape, levels: int) -> int:
+  """How many of `levels` pyramid levels `method` aligns a template of `shape` on.
+
+  The finest ones down to the last whose template keeps at least
+  `_MIN_SIDE` pixels on its smaller side (the full resolution always);
+  "ecc" works at full resolution only.
+
+  Args:
+    method: one of `SUPPORTED`.
+    shape: the full-resolution template's (h, w).
+    levels: the pyramid's levels (`TrackConfig.levels`).
+  """
+  if method == "ecc":
+    return 1
+  side, used = min(shape), 1
+  while used < levels:
+    side = (side + 1) // 2  # the size `sampling.pyr_down` gives
+    if side < _MIN_SIDE.get(method, _MIN_SIDE_DEFAULT):
+      break
+    used += 1
+  return used
+
+
 def _corners(h, shape) -> jax.Array:
   """(3, 3) homography → (8,) its images of the template's corners TL, TR, BR, BL."""
   mapped, _ = homography.apply_to_points(h, homography.rect_corners(shape))
@@ -129,10 +183,13 @@ class _Level:
     quads: the level's packed image.  frame_shape: its (H_l, W_l).
     template: (h_l, w_l) template at this level.
     grid: (h_l·w_l, 2) template pixel centres.
+    coarsest: whether the registration starts at this level.
   """
 
-  def __init__(self, index, quads, frame_shape, template, to_h, full_shape, start, loss_at):
+  def __init__(self, index, quads, frame_shape, template, to_h, full_shape, start, loss_at,
+               coarsest=False):
     self.index = index
+    self.coarsest = coarsest
     self.quads = quads
     self.frame_shape = frame_shape
     self.template = template
@@ -319,20 +376,24 @@ def _esm(level: _Level, u, iterations):
 
 
 def _hyperplane(level: _Level, u, iterations):
-  """Jurie–Dhome: δ = A·(I(W(xₛ)) − T(xₛ)) on sample points xₛ, H ← H·C(δ)⁻¹.
+  """Jurie–Dhome: δ = Aₖ·(I(W(xₛ)) − T(xₛ)) on sample points xₛ, H ← H·C(δ)⁻¹.
 
-  A (8 × points, kept transposed) is the ridge least-squares fit of corner
+  Aₖ (8 × points, kept transposed) is the ridge least-squares fit of corner
   offsets δ to the intensity differences they cause on the template itself,
-  T(C(δ)·xₛ) − T(xₛ), over random δ (fixed PRNG key) within the sample
-  points' margin.  δ is in pixels of the level, C the corner increment.
-  While some sample points are outside the frame, A is refitted on the
-  others (a zero difference at a missing point would read as "no motion
-  there" and bias the prediction).
+  T(C(δ)·xₛ) − T(xₛ), over random δ (fixed PRNG keys) uniform in ±rₖ level
+  pixels, rₖ = reach·2⁻ᵏ; iteration k of the level applies Aₖ (the last
+  from then on).  δ is in pixels of the level, C the corner increment.
+  While some sample points are outside the frame, the predictor is refitted
+  on the others (a zero difference at a missing point would read as "no
+  motion there" and bias the prediction).
   """
   del u, iterations
   template = level.template
   rows, cols = template.shape
-  reach = _HA_RANGE * (min(rows, cols) - 1)
+  reach = _HA_RANGE * (min(rows, cols) - 1) if level.coarsest else _HA_FINE
+  ranges = [reach]
+  while ranges[-1] / 2 >= _HA_FINEST:
+    ranges.append(ranges[-1] / 2)
   margin = reach + 1.0
   side = [min(_HA_POINTS, int(n - 1 - 2 * margin) + 1) for n in (rows, cols)]
   # Sample-grid index (j, i) → template point (margin + j·step_x, margin + i·step_y).
@@ -343,32 +404,39 @@ def _hyperplane(level: _Level, u, iterations):
   quads = sampling.pack_quads(template)
   reference, _ = sampling.sample_quads(quads, template.shape, to_points, side)
   count = _HA_TRAINING * side[0] * side[1]
-  deltas = jax.random.uniform(jax.random.key(0), (count, 8), template.dtype, -reach, reach)
-  moved, _ = sampling.sample_quads(quads, template.shape, increment(deltas) @ to_points, side)
-  differences = (moved - reference).reshape(count, -1)
-  gram = differences.T @ differences
-  correlation = differences.T @ deltas
-  ridge = (_HA_RIDGE * jnp.trace(gram) / gram.shape[0] + 1e-12) * jnp.eye(gram.shape[0],
-                                                                          dtype=gram.dtype)
+  grams, correlations = [], []
+  for k, r in enumerate(ranges):
+    deltas = jax.random.uniform(jax.random.key(k), (count, 8), template.dtype, -r, r)
+    moved, _ = sampling.sample_quads(quads, template.shape, increment(deltas) @ to_points, side)
+    differences = (moved - reference).reshape(count, -1)
+    grams.append(differences.T @ differences)
+    correlations.append(differences.T @ deltas)
+  points = side[0] * side[1]
+  eye = jnp.eye(points, dtype=template.dtype)
 
-  def fit(valid):
+  def fit(gram, correlation, valid):
     """(points, 8) Aᵀ from the sample points where valid (points,) is 1; 0 rows elsewhere."""
-    predictor = jnp.linalg.solve(gram * valid[:, None] * valid + ridge,
+    ridge = _HA_RIDGE * jnp.trace(gram) / points + 1e-12
+    predictor = jnp.linalg.solve(gram * valid[:, None] * valid + ridge * eye,
                                  correlation * valid[:, None])
     return jnp.where(jnp.all(jnp.isfinite(predictor)), predictor, 0.0)
 
-  predictor = fit(jnp.ones(gram.shape[0], gram.dtype))
+  # One solve per range (not vmapped: a batched solve inside the loop hung XLA's CPU runtime).
+  everywhere = jnp.ones(points, template.dtype)
+  predictors = jnp.stack([fit(g, c, everywhere) for g, c in zip(grams, correlations)])
+  grams, correlations = jnp.stack(grams), jnp.stack(correlations)
 
-  def update(u, state):
+  def update(u, k):
     patch, mask = sampling.sample_quads(level.quads, level.frame_shape, level.h(u) @ to_points,
                                         side)
     valid = mask.reshape(-1)
-    current = jax.lax.cond(jnp.all(valid), lambda: predictor,
-                           lambda: fit(valid.astype(gram.dtype)))
+    current = jax.lax.cond(jnp.all(valid), lambda: predictors[k],
+                           lambda: fit(grams[k], correlations[k], valid.astype(template.dtype)))
     delta = jnp.where(valid, (patch - reference).reshape(-1), 0.0) @ current
-    return level.compose(u, homography.inverse(increment(delta))), state, 1
+    return (level.compose(u, homography.inverse(increment(delta))),
+            jnp.minimum(k + 1, len(ranges) - 1), 1)
 
-  return update, ()
+  return update, jnp.zeros([], jnp.int32)
 
 
 def _finite(tree):
@@ -463,7 +531,8 @@ def register(method: str, frame: list, frame_shapes: list, template_pyramid: lis
       `sampling.sample_quads`) → the loss to minimise at that level (+inf
       where the warp is not admissible).
     similarity: the similarity `loss_at` measures (checked against `SUPPORTED`).
-    levels: number of pyramid levels; the coarsest is aligned first.
+    levels: number of pyramid levels; `pyramid_levels` of them are aligned,
+      the coarsest first.
     iterations: iterations at most per level ("ecc" works at full
       resolution only: its iteration cap).
 
@@ -485,9 +554,10 @@ def register(method: str, frame: list, frame_shapes: list, template_pyramid: lis
     return u, finest.loss(u), count, count
   u = jnp.zeros(dim, jnp.float32)
   total_iterations = total_evaluations = jnp.zeros([], jnp.int32)
-  for index in reversed(range(levels)):
+  used = pyramid_levels(method, full_shape, levels)
+  for index in reversed(range(used)):
     level = _Level(index, frame[index], frame_shapes[index], template_pyramid[index], to_h,
-                   full_shape, start_corners, loss_at)
+                   full_shape, start_corners, loss_at, coarsest=index == used - 1)
     update, state = _SOLVERS[method](level, u, iterations)
     u, count, evaluations = _iterate(update, u, state, iterations, _TOLERANCE * 2.0 ** index)
     total_iterations += count
