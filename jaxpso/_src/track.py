@@ -46,8 +46,8 @@ class TrackResult(NamedTuple):
     homographies: (T, 3, 3) template pixel → frame pixel, h[2, 2] = 1.
     corners: (T, 4, 2) the template's corners (TL, TR, BR, BL) in each frame.
     scores: (T,) similarity at the estimate (an error for "ssd").
-    quality: (T,) score relative to the template against itself, in (-inf, 1]
-      (1 at frame 0; `TrackConfig.lost_quality` is the threshold).
+    quality: (T,) `align.quality` of the estimate: about 1 for a match, lower
+      the worse (1 at frame 0; `TrackConfig.lost_quality` is the threshold).
     status: (T,) int32 `TrackStatus`.
     poses: (T, 4, 4) frame-0 → frame camera poses for motion "plane", else None.
     num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0).
@@ -66,7 +66,6 @@ class TrackResult(NamedTuple):
 class _Constants(NamedTuple):
   """What every frame step shares (a pytree)."""
   template: align.Template
-  self_score: jax.Array  # the loss of the template against itself, for quality
   geometry: motion.Plane | None
   seed: jax.Array
 
@@ -111,15 +110,11 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
   seed = _frame_seed(constants.seed, carry.frame)
   search = functools.partial(align.register, frame, shapes, template, geometry=constants.geometry,
                              config=config)
-  def good(loss, threshold):
-    return align.quality(loss, constants.self_score, config) >= threshold
-
   found = search(base=start, seed=seed, radius=jnp.float32(config.search_radius),
                  max_iterations=config.max_iterations,
                  accept=(None if config.accept_quality is None
-                         else functools.partial(good, threshold=config.accept_quality)))
-  quality = align.quality(found.loss, constants.self_score, config)
-  weak = ~(quality >= config.lost_quality)
+                         else lambda found: found.quality >= config.accept_quality))
+  weak = ~(found.quality >= config.lost_quality)
 
   def recover(_):
     wide = search(base=carry.estimate, seed=seed ^ jnp.uint32(0x5BD1E995),
@@ -131,7 +126,7 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
   base = start
   if config.method == "pso":
     found, base = jax.lax.cond(weak, recover, lambda _: (found, start), None)
-  quality = align.quality(found.loss, constants.self_score, config)
+  quality = found.quality
   lost = ~(quality >= config.lost_quality) | ~jnp.all(jnp.isfinite(found.u))
   status = jnp.where(lost, TrackStatus.LOST,
                      jnp.where(weak, TrackStatus.RECOVERED, TrackStatus.TRACKED)).astype(jnp.int32)
@@ -252,19 +247,18 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   if float(jnp.std(template)) < 1e-3:
     raise ValueError(f"roi {roi!r} is textureless (intensity std < 1e-3): nothing to track")
   prepared = align.prepare_template(template, config)
-  self_score = align.self_score(template, prepared, config)
   geometry = None
   if config.motion == "plane":
     geometry = _plane_geometry(camera, plane_normal, frame0.shape, h0, shape, config.dof)
   elif camera is not None or plane_normal is not None:
     raise ValueError("camera and plane_normal apply to motion 'plane' only;"
                      f" got TrackConfig.motion={config.motion!r}")
-  constants = _Constants(prepared, self_score, geometry, pso._as_seed(key))
+  constants = _Constants(prepared, geometry, pso._as_seed(key))
   first_estimate = h0 if geometry is None else jnp.eye(4, dtype=jnp.float32)
   carry = _Carry(first_estimate, jnp.eye(first_estimate.shape[0], dtype=jnp.float32),
                  jnp.ones([], jnp.int32))
 
-  first_score = 0.0 if config.similarity == "ssd" else -self_score
+  first_score = 0.0 if config.similarity == "ssd" else -prepared.self_loss
   outputs = [dict(homography=h0, score=first_score, quality=jnp.float32(1.0),
                   status=jnp.int32(TrackStatus.TRACKED), estimate=first_estimate,
                   num_iterations=jnp.int32(0), num_evaluations=jnp.int32(0))]
