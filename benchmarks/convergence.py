@@ -2,7 +2,10 @@
 
 100×100 templates cut at random places of the embedded camera and brick
 images; the 4 corners perturbed by Gaussian noise of σ px define the initial
-homography; success when the RMS of the 4 corner errors is <= 1 px.  The
+homography; success when the RMS of the 4 corner errors is <= 1 px.  A start whose quad
+the horizon cuts (the corners' w of both signs, possible at σ >= 16) is a
+ValueError of `jaxpso.align`, counted as a failure of every jaxpso method
+(`rejected_starts`) and left out of its times; OpenCV's ECC still runs it.  The
 photometric condition changes the image only (the template always comes from
 the unchanged image): none, gain/bias (v ↦ 0.7 v + 0.2), gamma 0.5 (v ↦ √v),
 inverted (v ↦ 1 − v) and noise (Gaussian, σ 0.03, clipped to [0, 1]).  Every
@@ -39,7 +42,7 @@ evaluation):
 The equal-time view is success against median time per method over all the
 trials run (the PNG's last panel and a table).
 
-Writes results/convergence.{json,md,png}.
+Writes results/convergence.{json,md,png} (`--name` for another name).
 
 Usage: python benchmarks/convergence.py [--trials N] [--sigmas 2,4,...]
   [--methods pso-mi,ic,...] [--conditions none,gamma,...] [--budget E]
@@ -153,6 +156,7 @@ def measure(methods: dict, conditions, sigmas, count: int, images, log):
       errors = {name: [] for name in methods}
       seconds = {name: [] for name in methods}
       evaluations = {name: [] for name in methods}
+      rejected = {name: 0 for name in methods}
       for i, (name, origin, start) in enumerate(trials(count, sigma, int(sigma) * 7)):
         x, y = int(origin[0]), int(origin[1])
         template = images[name][y:y + SIZE, x:x + SIZE]
@@ -166,7 +170,11 @@ def measure(methods: dict, conditions, sigmas, count: int, images, log):
             seconds[method].append(time.perf_counter() - t0)
             evaluations[method].append(iterations)
           else:
-            h, spent, used = align_once(image, template, start, config, i)
+            try:
+              h, spent, used = align_once(image, template, start, config, i)
+            except ValueError:  # a start quad the horizon cuts: rejected, a failure
+              h, spent, used = None, np.nan, 0
+              rejected[method] += 1
             seconds[method].append(spent)
             evaluations[method].append(used)
           found[method] = h
@@ -181,7 +189,8 @@ def measure(methods: dict, conditions, sigmas, count: int, images, log):
                      "label": METHODS[method][0], "trials": len(e),
                      "success": float(np.mean(e <= 1.0)),
                      "median_error_px": float(np.median(e)),
-                     "median_ms": float(np.median(seconds[method]) * 1e3),
+                     "median_ms": float(np.nanmedian(seconds[method]) * 1e3),
+                     "rejected_starts": rejected[method],
                      "median_evaluations": float(np.median(evaluations[method])),
                      "max_evaluations": int(np.max(evaluations[method]))})
         log(rows[-1])
@@ -286,6 +295,8 @@ def main():
                       help="similarity evaluations per alignment of the equal-budget run (0: none)")
   parser.add_argument("--budget-trials", type=int, default=50)
   parser.add_argument("--budget-conditions", default="none")
+  parser.add_argument("--name", default="convergence",
+                      help="results/NAME.{json,md,png} (to keep runs of different scope apart)")
   args = parser.parse_args()
   sigmas = [float(s) for s in args.sigmas.split(",")]
   names = args.methods.split(",")
@@ -402,19 +413,19 @@ def main():
     lines.append("")
   lines += ["## Every row", "",
             "| condition | σ (px) | method | trials | success | median error (px) | median ms |"
-            " median evaluations |", "|---|---:|---|---:|---:|---:|---:|---:|"]
+            " median evaluations | rejected starts |", "|---|---:|---|---:|---:|---:|---:|---:|---:|"]
   for r in rows + budget_rows:
     condition = CONDITIONS[r["condition"]][0] + (f", ≤ {r['budget']} evaluations"
                                                  if "budget" in r else "")
     lines.append(f"| {condition} | {r['sigma']:g} | {r['label']} | {r['trials']} |"
                  f" {percent(r['success'])} | {r['median_error_px']:.2f} | {r['median_ms']:.1f} |"
-                 f" {r['median_evaluations']:.0f} |")
-  png = os.path.join(common.RESULTS, "convergence.png")
+                 f" {r['median_evaluations']:.0f} | {r['rejected_starts']} |")
+  png = os.path.join(common.RESULTS, args.name + ".png")
   try:
     plot(rows, budget_rows, names, conditions, sigmas, png)
   except ImportError:
     print("matplotlib is not installed (pip install jaxpso[plots]); no PNG written")
-  common.write("convergence", {"machine": info, "minutes": minutes, "rows": rows,
+  common.write(args.name, {"machine": info, "minutes": minutes, "rows": rows,
                                "budget_rows": budget_rows, "ecc_agreement_px": agreement},
                "\n".join(lines) + "\n")
 
