@@ -133,6 +133,14 @@ def _print_summary(summary: dict, seconds: float, compile_seconds: float) -> Non
         f" {frames} frames, after {compile_seconds:.1f} s of one-off JIT compilation)")
 
 
+def _make_out(path: str) -> None:
+  """Creates the output folder before any tracking, or raises OSError naming --out."""
+  try:
+    os.makedirs(path, exist_ok=True)
+  except OSError as error:
+    raise OSError(f"--out {path!r} cannot be made a folder: {error.strerror}") from None
+
+
 def _compile(frames, roi, config, **kwargs) -> float:
   """Runs the tracker on the first two frames so that the timed run is compiled; seconds."""
   print("compiling the tracker (once per frame size and config)...", flush=True)
@@ -146,6 +154,7 @@ def _demo(args) -> int:
   if count < 2:
     raise ValueError(f"--frames must be >= 2, got {count}")
   config = _config(args)
+  _make_out(args.out)
   jumps = tuple(sorted({j for j in (count // 3, 2 * count // 3) if 0 < j < count}))
   sequence = synthetic.make_sequence(args.seed, num_frames=count, jumps=jumps, gain_drift=0.1,
                                      noise=0.01)
@@ -164,7 +173,6 @@ def _demo(args) -> int:
                         progress=True, **plane)
   seconds = time.perf_counter() - start
 
-  os.makedirs(args.out, exist_ok=True)
   summary = io.write_results(args.out, result, truth_corners=sequence.corners)
   _print_summary(summary, seconds, compile_seconds)
   path = _write_overlay(args.out, lambda: (
@@ -183,6 +191,7 @@ def _track(args) -> int:
     raise ValueError(f"--max-frames must be >= 1, got {args.max_frames}")
   config = _config(args)
   frames = io.read_frames(args.source)  # checks the source before any tracking
+  _make_out(args.out)
   print(f"tracking the {roi[2]}×{roi[3]} region at ({roi[0]}, {roi[1]}) of {args.source} with"
         f" {config.similarity}, motion {config.motion}")
   consumed = 0
@@ -204,7 +213,6 @@ def _track(args) -> int:
     raise
   seconds = time.perf_counter() - start
 
-  os.makedirs(args.out, exist_ok=True)
   summary = io.write_results(args.out, result)
   _print_summary(summary, seconds, compile_seconds)
   count = summary["frames"]
@@ -247,6 +255,9 @@ def main(argv=None) -> int:
   or OSError from the library) print one line `jaxpso: error: ...` to
   stderr and return 1.
   """
+  # OpenCV's FFmpeg backend logs to stderr itself ("moov atom not found"):
+  # quiet by default, so that an error is the one line below.
+  os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
   parser = _parser()
   try:
     args = parser.parse_args(argv)

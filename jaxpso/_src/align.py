@@ -140,18 +140,21 @@ class TrackConfig:
     baselines.check_supported(self.method, self.motion, self.similarity)
     if self.dof not in DOFS or isinstance(self.dof, bool):
       raise ValueError(f"TrackConfig.dof must be one of {DOFS}, got {self.dof!r}")
-    for name in ("levels", "swarm_size", "max_iterations", "bins", "recovery_scale"):
+    for name in ("levels", "swarm_size", "max_iterations", "recovery_scale"):
       checks.check_int(getattr(self, name), f"TrackConfig.{name}", 1)
+    checks.check_int(self.bins, "TrackConfig.bins", 4)  # the B-spline kernel spans 4 bins
     checks.check_int(self.refine_steps, "TrackConfig.refine_steps", 0)
-    if not float(self.search_radius) > 0:
-      raise ValueError(f"TrackConfig.search_radius must be > 0, got {self.search_radius!r}")
-    if not 0.0 < float(self.pixels) <= 1.0:
+    if not 0 < checks.check_real(self.search_radius, "TrackConfig.search_radius") < math.inf:
+      raise ValueError(
+          f"TrackConfig.search_radius must be finite and > 0, got {self.search_radius!r}")
+    if not 0.0 < checks.check_real(self.pixels, "TrackConfig.pixels") <= 1.0:
       raise ValueError(f"TrackConfig.pixels must be in (0, 1], got {self.pixels!r}")
-    if not 0.0 < float(self.min_valid) <= 1.0:
+    if not 0.0 < checks.check_real(self.min_valid, "TrackConfig.min_valid") <= 1.0:
       raise ValueError(f"TrackConfig.min_valid must be in (0, 1], got {self.min_valid!r}")
     for name in ("lost_quality", "retry_quality", "accept_quality"):
-      if getattr(self, name) is not None and not float(getattr(self, name)) <= 1.0:
-        raise ValueError(f"TrackConfig.{name} must be <= 1, got {getattr(self, name)!r}")
+      value = getattr(self, name)
+      if value is not None and not checks.check_real(value, f"TrackConfig.{name}") <= 1.0:
+        raise ValueError(f"TrackConfig.{name} must be <= 1, got {value!r}")
     if not isinstance(self.predict, bool):
       raise TypeError(f"TrackConfig.predict must be a bool, got {self.predict!r}")
     self.pso_config()  # validates the PSO settings
@@ -572,12 +575,23 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
         f" got TrackConfig.motion={config.motion!r}: use jaxpso.track for 'plane'")
   image = to_gray(image, "image")
   template = to_gray(template, "template")
+  spread = float(np.std(template))
+  if spread < 1e-3:
+    raise ValueError(
+        f"template is textureless (intensity std {spread:.2g} < 1e-3): nothing to align")
   start = np.asarray(init_homography)
   if not np.issubdtype(start.dtype, np.number) or start.shape != (3, 3):
     raise ValueError(f"init_homography must be a (3, 3) real matrix, got {start.dtype}{start.shape}")
   start = start.astype(np.float64)
   if not np.all(np.isfinite(start)) or abs(np.linalg.det(start)) < 1e-12:
     raise ValueError(f"init_homography must be finite and invertible, got {start.tolist()!r}")
+  # w of one sign at the corners: the template is not cut by the horizon (-H is H).
+  rows, cols = template.shape
+  corners = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]])
+  depth = corners @ start[2, :2] + start[2, 2]
+  if not (np.all(depth > 0) or np.all(depth < 0)):
+    raise ValueError("init_homography must map every template corner to a finite point"
+                     f" (w of one sign), got w = {depth.tolist()} for {start.tolist()!r}")
   check_template_size(template.shape, config, "template")
   x0, y0, width, height = _window(start, template.shape, image.shape, config)
   return _align(image[y0:y0 + height, x0:x0 + width], template, start.astype(np.float32),

@@ -7,6 +7,7 @@ the offending shape, dtype or value.
 
 from __future__ import annotations
 
+import numbers
 from collections.abc import Sequence
 
 import jax
@@ -21,7 +22,10 @@ def as_float_array(value, name: str) -> jax.Array:
     TypeError: if the dtype is not floating point.
     ValueError: if the array has a zero-size dimension.
   """
-  array = jnp.asarray(value)
+  try:
+    array = jnp.asarray(value)
+  except TypeError:  # strings, objects: JAX names neither the argument nor the value
+    raise TypeError(f"{name} must be a floating-point array, got {value!r}") from None
   if not jnp.issubdtype(array.dtype, jnp.floating):
     raise TypeError(
         f"{name} must be a floating-point array, got dtype {array.dtype}"
@@ -53,6 +57,13 @@ def check_int(value, name: str, minimum: int) -> int:
   return value
 
 
+def check_real(value, name: str) -> float:
+  """Returns `value` as a float if it is a real number (not a bool), else raises TypeError."""
+  if isinstance(value, bool) or not isinstance(value, numbers.Real):
+    raise TypeError(f"{name} must be a real number, got {value!r}")
+  return float(value)
+
+
 def check_shape2d(shape, name: str) -> tuple[int, int]:
   """Returns `shape` as a pair of positive ints `(h, w)`, or raises ValueError."""
   try:
@@ -74,10 +85,9 @@ def check_finite_if_concrete(array, name: str) -> None:
     return
   values = np.asarray(array)
   if not np.all(np.isfinite(values)):
-    bad = np.argwhere(~np.isfinite(values))[0]
+    bad = tuple(int(i) for i in np.argwhere(~np.isfinite(values))[0])  # not np.int64(…) reprs
     raise ValueError(
-        f"{name} must be finite, got {values[tuple(bad)]} at index {tuple(bad)}"
-        f" of shape {values.shape}")
+        f"{name} must be finite, got {values[bad]} at index {bad} of shape {values.shape}")
 
 
 def as_checked(value, trailing: Sequence[int], name: str, layout: str) -> jax.Array:

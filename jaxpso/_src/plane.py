@@ -38,6 +38,16 @@ def _pose(value, name: str) -> jax.Array:
   return as_checked(value, (4, 4), name, "(..., 4, 4)")
 
 
+def _camera(value) -> jax.Array:
+  """Validates intrinsics K (..., 3, 3), invertible where concrete."""
+  camera = as_checked(value, (3, 3), "camera", "(..., 3, 3)")
+  if not isinstance(camera, jax.core.Tracer):
+    k = np.asarray(camera, np.float64)
+    if not np.all(np.abs(np.linalg.det(k)) > 1e-12 * np.max(np.abs(k), axis=(-2, -1)) ** 3):
+      raise ValueError(f"camera must be invertible, got {k.tolist()!r}")
+  return camera
+
+
 def _skew(v: jax.Array) -> jax.Array:
   """[v]_x (..., 3, 3), the matrix with [v]_x u = v x u."""
   x, y, z = v[..., 0], v[..., 1], v[..., 2]
@@ -199,7 +209,7 @@ def camera_matrix(focal, cx, cy) -> jax.Array:
   K = [[f, 0, cx], [0, f, cy], [0, 0, 1]].
 
   Args:
-    focal: (...) focal length in pixels.
+    focal: (...) focal length in pixels, > 0.
     cx: (...) principal point x in pixels.
     cy: (...) principal point y in pixels.
 
@@ -207,6 +217,8 @@ def camera_matrix(focal, cx, cy) -> jax.Array:
     (..., 3, 3) camera matrices (leading axes broadcast).
   """
   focal = as_checked(focal, (), "focal", "(...)")
+  if not isinstance(focal, jax.core.Tracer) and not np.all(np.asarray(focal) > 0):
+    raise ValueError(f"focal must be positive, got {np.asarray(focal)!r}")
   cx = as_checked(cx, (), "cx", "(...)")
   cy = as_checked(cy, (), "cy", "(...)")
   focal, cx, cy = jnp.broadcast_arrays(focal, cx, cy)
@@ -264,7 +276,7 @@ def plane_homography(pose, camera, normal, distance=1.0) -> jax.Array:
 
   Args:
     pose: (..., 4, 4) poses (R, t) from frame-0 to current camera coordinates.
-    camera: (..., 3, 3) intrinsics K.
+    camera: (..., 3, 3) intrinsics K, invertible.
     normal: (..., 3) plane normal in frame-0 camera coordinates, non-zero.
     distance: (...) plane distance d > 0 (1 by default).
 
@@ -272,7 +284,7 @@ def plane_homography(pose, camera, normal, distance=1.0) -> jax.Array:
     (..., 3, 3) homographies from frame-0 pixels to current-frame pixels.
   """
   pose = _pose(pose, "pose")
-  camera = as_checked(camera, (3, 3), "camera", "(..., 3, 3)")
+  camera = _camera(camera)
   n = _unit_normal(normal)
   d = _distance(distance)
   t_over_d = pose[..., :3, 3] / d[..., None]
@@ -313,7 +325,7 @@ def pose_from_homography(h, camera, normal, distance=1.0) -> jax.Array:
 
   Args:
     h: (..., 3, 3) homographies from frame-0 to current-frame pixels.
-    camera: (..., 3, 3) intrinsics K.
+    camera: (..., 3, 3) intrinsics K, invertible.
     normal: (..., 3) plane normal in frame-0 camera coordinates, non-zero.
     distance: (...) plane distance d > 0 (1 by default).
 
@@ -321,7 +333,7 @@ def pose_from_homography(h, camera, normal, distance=1.0) -> jax.Array:
     (..., 4, 4) poses (R, t) from frame-0 to current camera coordinates.
   """
   h = as_checked(h, (3, 3), "h", "(..., 3, 3)")
-  camera = as_checked(camera, (3, 3), "camera", "(..., 3, 3)")
+  camera = _camera(camera)
   n = _unit_normal(normal)
   d = _distance(distance)
   m = jnp.matmul(jnp.matmul(homography.inverse(camera), h), camera)

@@ -161,6 +161,10 @@ class PSOConfig:
       raise ValueError(f"PSOConfig.tolerance must be a finite number >= 0, got {self.tolerance!r}")
     if self.target_loss is not None and not isinstance(self.target_loss, (int, float)):
       raise TypeError(f"PSOConfig.target_loss must be a number or None, got {self.target_loss!r}")
+    if self.target_loss is not None and math.isnan(self.target_loss):
+      raise ValueError(f"PSOConfig.target_loss must not be NaN, got {self.target_loss!r}")
+    if not isinstance(self.batched, bool):
+      raise TypeError(f"PSOConfig.batched must be a bool, got {self.batched!r}")
     if self.stop_weights is not None:
       weights = tuple(self.stop_weights)
       if len(weights) != 3 or not all(isinstance(w, (int, float)) and w >= 0 for w in weights):
@@ -312,6 +316,13 @@ def _check_hparams(hparams, config: PSOConfig) -> PSOHParams:
     return default_hparams(config.variant)
   if not isinstance(hparams, PSOHParams):
     raise TypeError(f"hparams must be a PSOHParams, got {type(hparams).__name__}")
+  for name, value in hparams._asdict().items():  # concrete values only: they may be vmapped
+    if isinstance(value, jax.core.Tracer):
+      continue
+    value = np.asarray(value)
+    if np.isnan(value).any() or (name == "velocity_clamp" and not np.all(value > 0)):
+      rule = "> 0" if name == "velocity_clamp" else "a number"
+      raise ValueError(f"hparams.{name} must be {rule}, got {value}")
   return PSOHParams(*(v if isinstance(v, jax.Array) and v.dtype == jnp.float32
                       else jnp.asarray(v, jnp.float32) for v in hparams))
 
@@ -336,7 +347,11 @@ def _as_seed(key) -> jax.Array:
   """(2,) uint32 seed drawn from an int seed, a raw uint32[2] key or a typed key."""
   if isinstance(key, int):
     return _int_seed(key)
-  key = jnp.asarray(key)
+  given = key
+  try:
+    key = jnp.asarray(key)
+  except TypeError:
+    raise TypeError(f"key must be an int seed or a JAX PRNG key, got {given!r}") from None
   if not jnp.issubdtype(key.dtype, jax.dtypes.prng_key):
     if key.dtype == jnp.uint32 and key.shape == (2,):
       key = jax.random.wrap_key_data(key)
@@ -686,7 +701,8 @@ def _prepare(lower, upper, hparams, config, positions, velocities, centre, scale
   if velocities is not None:
     velocities = _exact(velocities, shape, "velocities")
   if (centre is None) != (scale is None):
-    raise ValueError("centre and scale must be given together")
+    missing = "centre" if centre is None else "scale"
+    raise ValueError(f"centre and scale must be given together, got {missing}=None")
   if centre is not None:
     if positions is not None:
       raise ValueError("give either positions or centre and scale, not both")
@@ -694,6 +710,8 @@ def _prepare(lower, upper, hparams, config, positions, velocities, centre, scale
     scale = checks.as_float_array(scale, "scale")
     if scale.shape not in ((), (d,)):
       raise ValueError(f"scale must be a scalar or shape ({d},), got shape {scale.shape}")
+    if not isinstance(scale, jax.core.Tracer) and not np.all(np.isfinite(scale) & (scale > 0)):
+      raise ValueError(f"scale must be finite and > 0, got {np.asarray(scale)}")
   return lower, upper, _check_hparams(hparams, config), positions, velocities, centre, scale
 
 

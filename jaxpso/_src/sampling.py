@@ -171,8 +171,8 @@ def warp_image(image, homographies, shape):
 
   Raises:
     TypeError: non-float image or homographies.
-    ValueError: wrong ranks or shapes, an image smaller than 2×2, non-finite
-      concrete homographies.
+    ValueError: wrong ranks or shapes, an image smaller than 2×2, a non-finite
+      concrete image or homographies.
 
   Examples:
     >>> import jax.numpy as jnp
@@ -190,12 +190,13 @@ def warp_image(image, homographies, shape):
 
 
 def check_image(image, name: str = "image") -> jax.Array:
-  """Validates a 2-D float image of at least 2×2 pixels and returns it."""
+  """Validates a 2-D finite float image of at least 2×2 pixels and returns it."""
   image = checks.as_float_array(image, name)
   if image.ndim != 2:
     raise ValueError(f"{name} must be a 2-D (H, W) grey image, got shape {image.shape}")
   if min(image.shape) < 2:
     raise ValueError(f"{name} must be at least 2×2 pixels, got shape {image.shape}")
+  checks.check_finite_if_concrete(image, name)
   return image
 
 

@@ -87,14 +87,19 @@ def _check_range(value_range) -> tuple:
 
 
 def _check_min_valid(min_valid) -> float:
-  if not 0.0 < float(min_valid) <= 1.0:
+  try:
+    fraction = float(min_valid)
+  except (TypeError, ValueError):
+    fraction = math.nan
+  if not 0.0 < fraction <= 1.0:
     raise ValueError(f"min_valid must be a fraction in (0, 1], got {min_valid!r}")
-  return float(min_valid)
+  return fraction
 
 
 def _check_window(x, name: str) -> jax.Array:
   x = checks.as_float_array(x, name)
   checks.check_min_rank(x, 2, name, "(..., h, w)")
+  checks.check_finite_if_concrete(x, name)
   return x
 
 
@@ -117,6 +122,7 @@ def _check_pair(a, b, mask):
     mask = jnp.asarray(mask)
     if mask.dtype != jnp.bool_ and not jnp.issubdtype(mask.dtype, jnp.floating):
       raise TypeError(f"mask must be bool or float, got dtype {mask.dtype}")
+    checks.check_finite_if_concrete(mask, "mask")
     try:
       jnp.broadcast_shapes(mask.shape, shape)
     except ValueError:
