@@ -104,6 +104,11 @@ def test_without_accept_quality_the_swarm_always_runs():
   result = jaxpso.align(IMAGE, TEMPLATE, _perturbed(3, 3.0), config=config, key=5)
   assert int(result.num_evaluations) > config.swarm_size
   assert _corner_error(result.homography) < 1.0
+  # The key seeds the swarm: the same key gives a bit-identical result.
+  again = jaxpso.align(IMAGE, TEMPLATE, _perturbed(3, 3.0), config=config, key=5)
+  for field, value in result._asdict().items():
+    if value is not None:
+      np.testing.assert_array_equal(getattr(again, field), value, err_msg=field)
 
 
 def test_a_gradient_baseline_behind_align():

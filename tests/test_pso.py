@@ -512,6 +512,25 @@ def test_same_key_is_bit_identical_and_different_keys_differ():
   _assert_same_result(a, pso.run(jax.random.key(5), _sphere, LOWER, UPPER, SHIFT, config=CFG))
 
 
+@pytest.mark.parametrize("changes", [
+    dict(variant="spso2011", topology="random"),
+    dict(variant="linear_inertia", topology="dynamic", boundary="reflect"),
+    dict(variant="constriction", topology="von_neumann", boundary="reinit", grid_step=0.25),
+], ids=["spso2011-random", "linear-dynamic-reflect", "constriction-reinit-grid"])
+def test_run_and_trace_are_bit_identical_in_every_branch(changes):
+  # `run` (lax.while_loop) and `trace` (lax.scan) with only max_iterations
+  # active, on the random draws of each variant, topology and boundary rule:
+  # the same key gives the same swarm, run to run and form to form.
+  config = dataclasses.replace(CFG, **changes)
+  looped = pso.run(7, _sphere, LOWER, UPPER, SHIFT, config=config)
+  scanned, record = pso.trace(7, _sphere, LOWER, UPPER, SHIFT, config=config)
+  again, record_again = pso.trace(7, _sphere, LOWER, UPPER, SHIFT, config=config)
+  _assert_same_result(looped, scanned)
+  _assert_same_result(scanned, again)
+  np.testing.assert_array_equal(record.best_loss, record_again.best_loss)
+  np.testing.assert_array_equal(looped.state.informants, scanned.state.informants)
+
+
 def test_vmap_over_keys_equals_a_python_loop():
   keys = jnp.arange(3)
   batched = jax.vmap(lambda k: pso.run(k, _sphere, LOWER, UPPER, SHIFT, config=CFG))(keys)
