@@ -8,6 +8,7 @@ import pytest
 
 import jaxpso
 from jaxpso._src import align as align_module
+from jaxpso._src import plane
 from jaxpso._src.data import load_image
 
 SIZE = 64
@@ -139,3 +140,29 @@ def test_method_ecc_gives_opencvs_numbers():
 def test_unsupported_methods_list_what_is_supported(fields, message):
   with pytest.raises(ValueError, match=re.escape(message)):
     jaxpso.TrackConfig(**fields)
+
+
+@pytest.mark.parametrize("dof", [4, 6])
+def test_plane_motion_recovers_the_camera_pose(dof):
+  # The image seen after a camera motion, the template's plane fronto-parallel
+  # at distance 1: H = K (R + t nᵀ) K⁻¹ maps the first view to the second.
+  params = np.float32([0.02, -0.015, 0.01, 0.0, 0.0, 0.03])  # tx, ty, tz, wx, wy, wz
+  if dof == 6:
+    params[3:5] = [0.01, -0.012]
+  pose = np.asarray(plane.pose_from_params(params))
+  camera = np.asarray(plane.default_camera(IMAGE.shape))
+  moved = np.asarray(plane.plane_homography(pose, camera, np.float32([0, 0, 1])), np.float64)
+  image = cv2.warpPerspective(IMAGE, moved, IMAGE.shape[::-1], flags=cv2.INTER_LINEAR)
+  start = cv2.getPerspectiveTransform(SOURCE, TRUTH).astype(np.float32)
+  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "motion": "plane", "dof": dof})
+  found = jaxpso.align(image, TEMPLATE, start, config=config, key=2)
+  truth = cv2.perspectiveTransform(TRUTH[None].astype(np.float64), moved)[0]
+  mapped = cv2.perspectiveTransform(SOURCE[None], np.asarray(found.homography, np.float64))[0]
+  assert np.sqrt(np.mean(np.sum((mapped - truth) ** 2, axis=1))) < 0.5
+  # The pose is the one that induces the homography found...
+  induced = np.asarray(plane.plane_homography(found.pose, camera, np.float32([0, 0, 1]))) @ start
+  np.testing.assert_allclose(induced / induced[2, 2], found.homography, rtol=1e-3, atol=1e-3)
+  if dof == 4:  # ...and the true one where a 64 px template tells them apart (with 6 DOF
+    # tx/wy and ty/wx trade off: the same homography to a fraction of a pixel)
+    np.testing.assert_allclose(found.pose[:3, 3], pose[:3, 3], atol=5e-3)
+    np.testing.assert_allclose(found.pose[:3, :3], pose[:3, :3], atol=5e-3)

@@ -31,6 +31,7 @@ from jaxpso._src import baselines
 from jaxpso._src import checks
 from jaxpso._src import homography
 from jaxpso._src import motion
+from jaxpso._src import plane
 from jaxpso._src import pso
 from jaxpso._src import refine
 from jaxpso._src import sampling
@@ -178,6 +179,9 @@ class AlignResult(NamedTuple):
     num_iterations: () int32 PSO iterations plus refinement steps.
     num_evaluations: () int32 swarm evaluations (particles × iterations) plus
       refinement steps (each one similarity and its gradient).
+    pose: (4, 4) camera motion from the view of `init_homography` to the
+      image's for motion "plane" (translation in units of the plane's
+      distance), else None.
   """
   homography: jax.Array
   score: jax.Array
@@ -185,6 +189,7 @@ class AlignResult(NamedTuple):
   status: jax.Array
   num_iterations: jax.Array
   num_evaluations: jax.Array
+  pose: jax.Array | None = None
 
 
 def to_gray(image, name: str):
@@ -508,14 +513,22 @@ def better_of(first: Registration, second: Registration) -> Registration:
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def _align(image, template, init_homography, offset, seed, *,
+def _align(image, template, init_homography, offset, seed, geometry, *,
            config: TrackConfig) -> AlignResult:
-  """`align` on the (H, W) window of the image whose top-left pixel is at `offset` (2,)."""
+  """`align` on the (H, W) window of the image whose top-left pixel is at `offset` (2,).
+
+  `geometry` is the `motion.Plane` of motion "plane" in image coordinates, else None.
+  """
   _, sign = _measure(config)
   frame, shapes = prepare_frame(image, config)
   prepared = prepare_template(template, config)
-  start = homography.translation(-offset[0], -offset[1]) @ init_homography
-  search = functools.partial(register, frame, shapes, prepared, start, None,
+  to_window = homography.translation(-offset[0], -offset[1])
+  start = to_window @ init_homography
+  if geometry is not None:  # the same plane seen in window coordinates
+    geometry = geometry._replace(camera=to_window @ geometry.camera,
+                                 template_to_frame0=to_window @ geometry.template_to_frame0)
+    start = jnp.eye(4, dtype=jnp.float32)
+  search = functools.partial(register, frame, shapes, prepared, start, geometry,
                              config=config)
   found = search(seed, jnp.float32(config.search_radius), max_iterations=config.max_iterations,
                  accept=(None if config.accept_quality is None
@@ -537,7 +550,8 @@ def _align(image, template, init_homography, offset, seed, *,
       homography=normalized(homography.translation(offset[0], offset[1]) @ found.homography),
       score=sign * found.loss, quality=found.quality,
       status=jnp.where(finite, AlignStatus.SUCCESS, AlignStatus.NO_VALID_WARP).astype(jnp.int32),
-      num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
+      num_iterations=found.num_iterations, num_evaluations=found.num_evaluations,
+      pose=None if geometry is None else motion.plane_pose(found.u, start, geometry, config.dof))
 
 
 def normalized(h) -> jax.Array:
@@ -553,26 +567,56 @@ def check_template_size(shape, config: TrackConfig, name: str) -> None:
         " the coarsest level would be under 4 px")
 
 
+def plane_geometry(camera, plane_normal, frame_shape, h0, shape, dof):
+  """Validated `motion.Plane` from the user's camera and normal (None: the defaults).
+
+  Args:
+    camera: (3, 3) K or None (`plane.default_camera` of `frame_shape`).
+    plane_normal: (3,) normal in frame-0 camera coordinates or None (0, 0, 1).
+    frame_shape: (H, W) of the frame the template was cut from.
+    h0: (3, 3) template → that frame.  shape: template (h, w).  dof: 2, 4 or 6.
+  """
+  k = (np.asarray(plane.default_camera(frame_shape), np.float64) if camera is None
+       else np.asarray(camera, np.float64))
+  if k.shape != (3, 3) or not np.all(np.isfinite(k)) or abs(np.linalg.det(k)) < 1e-12:
+    raise ValueError(f"camera must be a finite, invertible 3×3 matrix, got {camera!r}")
+  n = np.array([0.0, 0.0, 1.0]) if plane_normal is None else np.asarray(plane_normal, np.float64)
+  if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
+    raise ValueError(f"plane_normal must be a finite non-zero 3-vector, got {plane_normal!r}")
+  n = n / np.linalg.norm(n)
+  centre = np.asarray(h0, np.float64) @ np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2, 1.0])
+  ray = np.linalg.solve(k, centre / centre[2])
+  if not n @ ray > 1e-6:
+    raise ValueError(
+        f"plane_normal {plane_normal!r} puts the template's plane behind the camera: n·X = d > 0"
+        " must hold for the points X seen in the template")
+  return motion.plane_geometry(jnp.asarray(k, jnp.float32), jnp.asarray(n, jnp.float32), h0,
+                               shape, dof)
+
+
 def align(image, template, init_homography, *, config: TrackConfig = TrackConfig(),
-          key=0) -> AlignResult:
+          key=0, camera=None, plane_normal=None) -> AlignResult:
   """Registers `template` in `image`, starting from `init_homography`.
 
   Args:
     image: (H, W) grey or (H, W, 3) colour, uint8 or float in [0, 1].
     template: (h, w) grey or (h, w, 3) colour, same conventions.
     init_homography: (3, 3) template pixel → image pixel (OpenCV convention).
-    config: `TrackConfig`.
+    config: `TrackConfig`.  With motion "plane" the search is over `dof`
+      camera-motion parameters from the view in which `init_homography`
+      holds (pose identity) and the result has the `pose`.
     key: int seed or PRNG key of the swarm.
+    camera: (3, 3) intrinsics K of `image` (motion "plane"); default
+      f = max(H, W), principal point at the centre.
+    plane_normal: (3,) unit normal of the template's plane in the camera
+      coordinates of that view, n·X = d > 0 (motion "plane"); default
+      (0, 0, 1).  As for `track`.
 
   Returns:
     `AlignResult`.
   """
   if not isinstance(config, TrackConfig):
     raise TypeError(f"config must be a TrackConfig, got {type(config).__name__}")
-  if config.motion != "homography":
-    raise ValueError(
-        f"align searches motion 'homography' (a start homography has no camera);"
-        f" got TrackConfig.motion={config.motion!r}: use jaxpso.track for 'plane'")
   image = to_gray(image, "image")
   template = to_gray(template, "template")
   spread = float(np.std(template))
@@ -593,9 +637,17 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
     raise ValueError("init_homography must map every template corner to a finite point"
                      f" (w of one sign), got w = {depth.tolist()} for {start.tolist()!r}")
   check_template_size(template.shape, config, "template")
+  geometry = None
+  if config.motion == "plane":
+    geometry = plane_geometry(camera, plane_normal, image.shape, start.astype(np.float32),
+                              template.shape,
+                              config.dof)
+  elif camera is not None or plane_normal is not None:
+    raise ValueError("camera and plane_normal apply to motion 'plane' only;"
+                     f" got TrackConfig.motion={config.motion!r}")
   x0, y0, width, height = _window(start, template.shape, image.shape, config)
   return _align(image[y0:y0 + height, x0:x0 + width], template, start.astype(np.float32),
-                np.float32([x0, y0]), pso._as_seed(key), config=config)
+                np.float32([x0, y0]), pso._as_seed(key), geometry, config=config)
 
 
 # The window `align` works in is a multiple of this many pixels each way, so

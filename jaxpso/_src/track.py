@@ -187,26 +187,6 @@ def _template_geometry(roi, frame_shape):
   return jnp.asarray(h0 / h0[2, 2], jnp.float32), shape
 
 
-def _plane_geometry(camera, plane_normal, frame_shape, h0, shape, dof):
-  """Validated `motion.Plane` from the user's camera and normal."""
-  k = (np.asarray(plane.default_camera(frame_shape), np.float64) if camera is None
-       else np.asarray(camera, np.float64))
-  if k.shape != (3, 3) or not np.all(np.isfinite(k)) or abs(np.linalg.det(k)) < 1e-12:
-    raise ValueError(f"camera must be a finite, invertible 3×3 matrix, got {camera!r}")
-  n = np.array([0.0, 0.0, 1.0]) if plane_normal is None else np.asarray(plane_normal, np.float64)
-  if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
-    raise ValueError(f"plane_normal must be a finite non-zero 3-vector, got {plane_normal!r}")
-  n = n / np.linalg.norm(n)
-  centre = np.asarray(h0, np.float64) @ np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2, 1.0])
-  ray = np.linalg.solve(k, centre / centre[2])
-  if not n @ ray > 1e-6:
-    raise ValueError(
-        f"plane_normal {plane_normal!r} puts the ROI's plane behind the camera: n·X = d > 0"
-        " must hold for the points X seen in the ROI")
-  return motion.plane_geometry(jnp.asarray(k, jnp.float32), jnp.asarray(n, jnp.float32), h0,
-                               shape, dof)
-
-
 def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0, camera=None,
           plane_normal=None, progress: bool = False) -> TrackResult:
   """Tracks the region `roi` of frame 0 through `frames`.
@@ -249,7 +229,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   prepared = align.prepare_template(template, config)
   geometry = None
   if config.motion == "plane":
-    geometry = _plane_geometry(camera, plane_normal, frame0.shape, h0, shape, config.dof)
+    geometry = align.plane_geometry(camera, plane_normal, frame0.shape, h0, shape, config.dof)
   elif camera is not None or plane_normal is not None:
     raise ValueError("camera and plane_normal apply to motion 'plane' only;"
                      f" got TrackConfig.motion={config.motion!r}")
