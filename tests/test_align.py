@@ -166,3 +166,15 @@ def test_plane_motion_recovers_the_camera_pose(dof):
     # tx/wy and ty/wx trade off: the same homography to a fraction of a pixel)
     np.testing.assert_allclose(found.pose[:3, 3], pose[:3, 3], atol=5e-3)
     np.testing.assert_allclose(found.pose[:3, :3], pose[:3, :3], atol=5e-3)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"camera": np.eye(3)}, "camera and plane_normal apply to motion 'plane' only"),
+    ({"plane": True, "plane_normal": (0.0, 0.0, 0.0)}, r"plane_normal .*\(0\.0, 0\.0, 0\.0\)"),
+    ({"plane": True, "camera": np.zeros((3, 3))}, "camera must be a finite, invertible"),
+])
+def test_plane_arguments_are_checked(kwargs, match):
+  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "motion": "plane"}) if kwargs.pop(
+      "plane", False) else CONFIG
+  with pytest.raises(ValueError, match=match):
+    jaxpso.align(IMAGE, TEMPLATE, _perturbed(0, 1.0), config=config, **kwargs)
