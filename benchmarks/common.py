@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import datetime
 import json
 import os
@@ -50,6 +51,34 @@ def median_seconds(fn, *args, repeats: int = 7, warmup: int = 2) -> float:
     jax.block_until_ready(fn(*args))
     times.append(time.perf_counter() - start)
   return float(np.median(times))
+
+
+@contextlib.contextmanager
+def timed_frame_steps(after_step=None):
+  """Times every call of `jaxpso.track`'s compiled frame step to completion.
+
+  Yields the list that each call's seconds are appended to (blocking on its
+  outputs, so asynchronous dispatch cannot run ahead); `after_step(count)`,
+  if given, runs after each call.  Frame 1's call includes the compilation.
+  """
+  from jaxpso._src import track  # the private step: track() looks it up per call
+
+  step = track._frame_step
+  seconds = []
+
+  def timed(*args, **kwargs):
+    start = time.perf_counter()
+    out = jax.block_until_ready(step(*args, **kwargs))
+    seconds.append(time.perf_counter() - start)
+    if after_step is not None:
+      after_step(len(seconds))
+    return out
+
+  track._frame_step = timed
+  try:
+    yield seconds
+  finally:
+    track._frame_step = step
 
 
 def write(name: str, payload: dict, markdown: str) -> None:

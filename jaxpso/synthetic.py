@@ -2,8 +2,10 @@
 
 `make_sequence(seed, ...)` renders frames from an embedded CC0 image laid on
 the plane n · X = d, with a smooth 6-DOF trajectory, optional sudden jumps,
-gain drift, an intensity change part-way, blur and noise, and returns the
-true template → frame homographies, corners and poses.
+gain drift, an intensity change part-way, an occlusion of the region, blur
+and noise, and returns the true template → frame homographies, corners and
+poses and whether the region is visible; `lazy=True` renders the frames one
+at a time as they are asked for, for long sequences.
 """
 
 from jaxpso._src.synthetic import INTENSITY_CHANGES

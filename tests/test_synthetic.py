@@ -84,6 +84,38 @@ def test_photometric_options():
     assert seq.frames.dtype == np.float32 and seq.frames.min() >= 0 and seq.frames.max() <= 1
 
 
+def test_occlusion_hides_the_region_only_in_its_frames():
+  base = synthetic.make_sequence(4, noise=0.01, **SMALL)
+  occluded = synthetic.make_sequence(4, noise=0.01, occlusion=(3, 7), **SMALL)
+  np.testing.assert_array_equal(occluded.visible, (np.arange(12) < 3) | (np.arange(12) >= 7))
+  np.testing.assert_array_equal(base.visible, True)
+  np.testing.assert_array_equal(occluded.homographies, base.homographies)
+  visible = occluded.visible
+  np.testing.assert_array_equal(occluded.frames[visible], base.frames[visible])
+  for t in range(3, 7):
+    # The whole region is covered, by something that is not the target, and
+    # nothing beyond a quarter of the 48 px region past its bounding box.
+    template, patch, mask = _template_in(occluded, t)
+    assert mask.mean() > 0.99
+    assert float(similarity.ncc(template, patch, mask)) < 0.2
+    changed = np.argwhere(occluded.frames[t] != base.frames[t])
+    lo, hi = occluded.corners[t].min(axis=0), occluded.corners[t].max(axis=0)
+    assert np.all(changed.min(axis=0)[::-1] >= np.floor(lo - 12))
+    assert np.all(changed.max(axis=0)[::-1] <= np.ceil(hi + 12))
+  again = synthetic.make_sequence(4, noise=0.01, occlusion=(3, 7), **SMALL)
+  np.testing.assert_array_equal(again.frames, occluded.frames)
+
+
+def test_lazy_frames_equal_the_eager_ones():
+  settings = dict(SMALL, noise=0.02, gain_drift=0.1, blur=1.0, occlusion=(2, 5),
+                  intensity_change=(6, "gamma"))
+  eager = synthetic.make_sequence(5, **settings)
+  lazy = synthetic.make_sequence(5, lazy=True, **settings)
+  assert not isinstance(lazy.frames, np.ndarray)
+  np.testing.assert_array_equal(np.stack(list(lazy.frames)), eager.frames)
+  np.testing.assert_array_equal(lazy.homographies, eager.homographies)
+
+
 @pytest.mark.parametrize("kwargs, name", [
     (dict(num_frames=0), "num_frames"),
     (dict(roi_size=(500, 40)), "roi_size"),
@@ -92,6 +124,10 @@ def test_photometric_options():
     (dict(camera=np.zeros((3, 3))), "camera"),
     (dict(jumps=(0,)), "jumps"),
     (dict(intensity_change=(2, "sepia")), "intensity_change"),
+    (dict(occlusion=(0, 3)), "occlusion"),
+    (dict(occlusion=(5, 5)), "occlusion"),
+    (dict(occlusion=(5, 13)), "occlusion"),
+    (dict(occlusion=5), "occlusion"),
     (dict(frame_shape=(0, 10)), "frame_shape"),
 ])
 def test_bad_input_names_the_argument(kwargs, name):

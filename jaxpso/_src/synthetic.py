@@ -6,12 +6,14 @@ gain/bias drift, an intensity change part-way, blur and noise give frames
 whose ground-truth homographies (template pixel → frame pixel) and poses are
 exact: every frame is rendered by pulling the texture through the same
 plane-induced homography H = K (R + t nᵀ/d) K⁻¹ that the tracker estimates.
+An occluder can hide the region for a run of frames, and the frames can be
+rendered lazily, one at a time, for sequences too long to hold in memory.
 """
 
 from __future__ import annotations
 
 import math
-from typing import NamedTuple
+from typing import Iterator, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -31,11 +33,14 @@ class Sequence(NamedTuple):
   """A synthetic sequence and its ground truth.
 
   Attributes:
-    frames: (T, H, W) float32 frames in [0, 1].
+    frames: (T, H, W) float32 frames in [0, 1]; with `make_sequence(...,
+      lazy=True)` a one-pass iterator rendering them one (H, W) frame at a time.
     homographies: (T, 3, 3) true template → frame homographies (identity
-      plus the ROI offset at frame 0), normalised to h[2, 2] = 1.
+      plus the ROI offset at frame 0), normalised to h[2, 2] = 1; in occluded
+      frames, where the region is behind the occluder.
     corners: (T, 4, 2) true template corners (TL, TR, BR, BL) in each frame.
     poses: (T, 4, 4) true poses: frame-0 camera → frame-t camera.
+    visible: (T,) bool, False in the frames where the occluder hides the region.
     roi: (x, y, w, h) of the template in frame 0.
     camera: (3, 3) intrinsics K.
     normal: (3,) unit plane normal in frame-0 camera coordinates.
@@ -45,6 +50,7 @@ class Sequence(NamedTuple):
   homographies: np.ndarray
   corners: np.ndarray
   poses: np.ndarray
+  visible: np.ndarray
   roi: tuple[int, int, int, int]
   camera: np.ndarray
   normal: np.ndarray
@@ -92,13 +98,26 @@ def _texture_to_frame0(camera, normal, distance, texture_shape, frame_shape):
   return camera @ columns
 
 
+# The occluder covers the region's bounding box grown by this fraction of the
+# region's larger side on every side.
+_OCCLUDER_MARGIN = 0.25
+
+
+def _occluder_box(corners, margin: float, frame_shape) -> tuple[slice, slice]:
+  """(rows, columns) slices of the frame that the occluder covers around the (4, 2) `corners`."""
+  height, width = frame_shape
+  x0, y0 = np.floor(corners.min(axis=0) - margin).astype(int)
+  x1, y1 = np.ceil(corners.max(axis=0) + margin).astype(int) + 1
+  return slice(max(y0, 0), min(y1, height)), slice(max(x0, 0), min(x1, width))
+
+
 def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320),
                   roi_size=(100, 100), texture: str = "camera", camera=None,
                   normal=(0.0, 0.0, 1.0), distance: float = 1.0,
                   translation: float = 0.05, rotation: float = 0.03, jumps=(),
                   jump_size: float = 1.0, gain_drift: float = 0.0, noise: float = 0.0,
-                  blur: float = 0.0, intensity_change: tuple[int, str] | None = None
-                  ) -> Sequence:
+                  blur: float = 0.0, intensity_change: tuple[int, str] | None = None,
+                  occlusion: tuple[int, int] | None = None, lazy: bool = False) -> Sequence:
   """Renders a sequence of the textured plane seen by a moving camera.
 
   Frame t is texture(M_t⁻¹ q) with M_t = K [R_t s e1 | R_t s e2 | R_t X₀ + t_t],
@@ -106,7 +125,7 @@ def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320
   frame homography is exactly K (R_t + t_t nᵀ/d) K⁻¹ · T(roi offset).
 
   Args:
-    seed: random seed of the trajectory and the noise.
+    seed: random seed of the trajectory, the noise and the occluder.
     num_frames: T >= 1.
     frame_shape: (H, W) of the frames.
     roi_size: (h, w) of the template, centred in frame 0.
@@ -124,6 +143,13 @@ def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320
     blur: standard deviation (px) of a Gaussian blur, 0 for none.
     intensity_change: (frame, kind) applies kind ("gamma": v ↦ √v, "invert":
       v ↦ 1 − v) to that frame and the following ones.
+    occlusion: (start, stop) hides the region in frames start ≤ k < stop
+      (0 < start < stop ≤ T) behind an occluder of uniform noise in [0, 1],
+      new in every frame, over the region's bounding box grown by a quarter
+      of its larger side each way; blur and noise apply to it as well.  The
+      other frames are those of the sequence without occlusion.
+    lazy: `frames` is an iterator that renders each frame when it is asked
+      for, so memory does not grow with T; its frames equal the eager ones.
 
   Returns:
     `Sequence` with frames clipped to [0, 1].
@@ -152,49 +178,66 @@ def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320
       raise ValueError(
           f"intensity_change must be (frame in [0, {num_frames}), one of {INTENSITY_CHANGES}),"
           f" got {intensity_change!r}")
+  visible = np.ones(num_frames, bool)
+  if occlusion is not None:
+    try:
+      hidden_from, hidden_to = (int(k) for k in occlusion)
+    except (TypeError, ValueError):
+      hidden_from = hidden_to = -1
+    if not 0 < hidden_from < hidden_to <= num_frames:
+      raise ValueError(
+          f"occlusion must be (start, stop) with 0 < start < stop <= num_frames = {num_frames},"
+          f" got {occlusion!r}")
+    visible[hidden_from:hidden_to] = False
 
   rng = np.random.default_rng(seed)
+  occluder_rng = rng.spawn(1)[0]  # a stream of its own: rng's noise stays that of no occlusion
   params = _trajectory(rng, num_frames, translation, rotation, jumps, jump_size)
   poses = np.asarray(plane.pose_from_params(jnp.asarray(params, jnp.float32)), np.float64)
   rotations, shifts = poses[:, :3, :3], poses[:, :3, 3]
   frame0_to_frame = camera @ (rotations + shifts[:, :, None] * normal[None, None, :] / distance) \
       @ np.linalg.inv(camera)
 
-  image = data.load_image(texture)
-  minification = image.shape[1] / (2.0 * width)  # texture pixels per frame-0 pixel
-  if minification > 1:  # prefilter so that rendering does not alias
-    import cv2  # lazily: `import jaxpso` stays free of OpenCV
-
-    image = cv2.GaussianBlur(image, (0, 0), 0.5 * minification)
-  texture_to_frame0 = _texture_to_frame0(camera, normal, distance, image.shape, (height, width))
-  texture_to_frame = frame0_to_frame @ texture_to_frame0
-  frame_to_texture = np.linalg.inv(texture_to_frame)
-  frame_to_texture /= frame_to_texture[:, 2:3, 2:3]
-  render = jax.jit(lambda hs: sampling.warp_image(jnp.asarray(image), hs, (height, width))[0])
-  frames = np.asarray(render(jnp.asarray(frame_to_texture, jnp.float32)), np.float64)
-
-  k = np.arange(num_frames)[:, None, None]
-  if gain_drift:
-    frames = frames * (1 + gain_drift * np.sin(2 * np.pi * k / num_frames)) \
-        + 0.5 * gain_drift * k / num_frames
-  if intensity_change is not None:
-    start, kind = intensity_change
-    changed = np.sqrt(np.clip(frames, 0, None)) if kind == "gamma" else 1.0 - frames
-    frames = np.where(k >= int(start), changed, frames)
-  if blur:
-    import cv2  # lazily: `import jaxpso` stays free of OpenCV
-
-    frames = np.stack([cv2.GaussianBlur(f, (0, 0), blur) for f in frames])
-  if noise:
-    frames = frames + rng.normal(0, noise, frames.shape)
-  frames = np.clip(frames, 0.0, 1.0).astype(np.float32)
-
   x0, y0 = (width - w) // 2, (height - h) // 2
   truth = frame0_to_frame @ np.array([[1.0, 0, x0], [0, 1, y0], [0, 0, 1]])
   truth /= truth[:, 2:3, 2:3]
   corners = np.asarray(homography.apply_to_points(
       jnp.asarray(truth, jnp.float32), homography.rect_corners((h, w)).astype(jnp.float32))[0])
-  return Sequence(frames=frames, homographies=truth.astype(np.float32),
-                  corners=corners.astype(np.float32), poses=poses.astype(np.float32),
-                  roi=(x0, y0, w, h), camera=camera.astype(np.float32),
-                  normal=normal.astype(np.float32), distance=float(distance))
+
+  image = data.load_image(texture)
+  minification = image.shape[1] / (2.0 * width)  # texture pixels per frame-0 pixel
+  if minification > 1 or blur:
+    import cv2  # lazily: `import jaxpso` stays free of OpenCV
+  if minification > 1:  # prefilter so that rendering does not alias
+    image = cv2.GaussianBlur(image, (0, 0), 0.5 * minification)
+  texture_to_frame0 = _texture_to_frame0(camera, normal, distance, image.shape, (height, width))
+  texture_to_frame = frame0_to_frame @ texture_to_frame0
+  frame_to_texture = np.linalg.inv(texture_to_frame)
+  frame_to_texture /= frame_to_texture[:, 2:3, 2:3]
+  frame_to_texture = frame_to_texture.astype(np.float32)
+  render = jax.jit(lambda hs: sampling.warp_image(jnp.asarray(image), hs, (height, width))[0])
+  margin = _OCCLUDER_MARGIN * max(h, w)
+
+  def frames() -> Iterator[np.ndarray]:
+    """The (H, W) float32 frames in order; the noise is drawn frame by frame."""
+    for k in range(num_frames):
+      frame = np.asarray(render(frame_to_texture[k:k + 1]), np.float64)[0]
+      if gain_drift:
+        frame = frame * (1 + gain_drift * np.sin(2 * np.pi * k / num_frames)) \
+            + 0.5 * gain_drift * k / num_frames
+      if intensity_change is not None and k >= int(intensity_change[0]):
+        frame = np.sqrt(np.clip(frame, 0, None)) if intensity_change[1] == "gamma" else 1.0 - frame
+      if not visible[k]:
+        rows, columns = _occluder_box(corners[k], margin, (height, width))
+        frame[rows, columns] = occluder_rng.uniform(0.0, 1.0, frame[rows, columns].shape)
+      if blur:
+        frame = cv2.GaussianBlur(frame, (0, 0), blur)
+      if noise:
+        frame = frame + rng.normal(0, noise, frame.shape)
+      yield np.clip(frame, 0.0, 1.0).astype(np.float32)
+
+  return Sequence(frames=frames() if lazy else np.stack(list(frames())),
+                  homographies=truth.astype(np.float32), corners=corners.astype(np.float32),
+                  poses=poses.astype(np.float32), visible=visible, roi=(x0, y0, w, h),
+                  camera=camera.astype(np.float32), normal=normal.astype(np.float32),
+                  distance=float(distance))

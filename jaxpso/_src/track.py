@@ -6,9 +6,10 @@ the constant-velocity prediction and the previous estimate, the registration
 of `align.register` (Gauss–Newton from the start; when that falls short of
 `TrackConfig.accept_quality`, the swarm and Gauss–Newton from its best), a
 quality check and, when the quality is low, a recovery search around the last
-good estimate with a wider box and more iterations (a `lax.cond`, compiled
-once with the rest).  A frame whose quality stays low is LOST: the last good
-estimate is kept and the motion prediction is reset.  For motion "plane" the
+good estimate: a larger swarm over the template's translation in a wider box,
+then Gauss–Newton (a `lax.cond`, compiled once with the rest).  A frame whose
+quality stays low is LOST: the last good estimate is kept and the motion
+prediction is reset.  For motion "plane" the
 camera pose is accumulated, T̂ ← T(x) · T̂.  With a gradient baseline
 (`TrackConfig.method`) the registration is that method's, without recovery.
 """
@@ -117,9 +118,12 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
   weak = ~(found.quality >= config.lost_quality)
 
   def recover(_):
+    # What accumulates while the target is lost is mostly translation, and a
+    # swarm over every motion parameter in the wide box seldom found it.
     wide = search(base=carry.estimate, seed=seed ^ jnp.uint32(0x5BD1E995),
                   radius=jnp.float32(config.search_radius * config.recovery_scale),
-                  max_iterations=config.max_iterations * config.recovery_scale)
+                  max_iterations=config.max_iterations * config.recovery_scale,
+                  swarm_size=config.swarm_size * config.recovery_scale, translation=True)
     base = jnp.where(found.loss <= wide.loss, start, carry.estimate)
     return align.better_of(found, wide), base
 
