@@ -234,6 +234,19 @@ def test_one_trace_per_config_and_no_retrace_for_new_frames():
   assert track_module._frame_step._cache_size() == size
 
 
+def test_outputs_moved_to_the_host_in_chunks_are_unchanged(monkeypatch):
+  # track copies the per-frame outputs to the host every _HOST_CHUNK frames:
+  # chunks of 3 over 8 frames (two full, one partial) give the same result.
+  sequence = _sequence("default")
+  reference, _ = _tracked(HOMOGRAPHY["mi"], "default")
+  monkeypatch.setattr(track_module, "_HOST_CHUNK", 3)
+  chunked = jaxpso.track(sequence.frames, sequence.roi, config=HOMOGRAPHY["mi"], key=0)
+  for field, value in reference._asdict().items():
+    if value is not None:
+      assert getattr(chunked, field).dtype == value.dtype, field
+      np.testing.assert_array_equal(getattr(chunked, field), value, err_msg=field)
+
+
 # --- loss of track ----------------------------------------------------------------------------
 
 

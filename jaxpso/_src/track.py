@@ -147,6 +147,20 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
   return _Carry(estimate, velocity, carry.frame + 1), outputs
 
 
+# `track` moves the per-frame outputs to the host in chunks of this many
+# frames.  Kept on the device to the end, they held 12.7 KB per frame
+# (benchmarks/long_run.py: +56 MiB from frame 500 to 5000), and jnp.stack
+# compiled a T-operand concatenation per field (2 fields of 5000 frames:
+# 41 s and +336 MiB; np.stack on the host: 0.07 s).
+_HOST_CHUNK = 256
+
+
+def _to_host(outputs: list) -> dict:
+  """Per-frame output dicts → one dict of (n, ...) NumPy arrays (waits for the last frame)."""
+  host = jax.device_get(outputs)
+  return {k: np.stack([o[k] for o in host]) for k in host[0]}
+
+
 def _frames(frames):
   """An iterator over the frames, and their number if known."""
   if isinstance(frames, (np.ndarray, jax.Array)):
@@ -243,7 +257,8 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
                  jnp.ones([], jnp.int32))
 
   first_score = 0.0 if config.similarity == "ssd" else -prepared.self_loss
-  outputs = [dict(homography=h0, score=first_score, quality=jnp.float32(1.0),
+  chunks = []
+  outputs = [dict(homography=h0, score=jnp.float32(first_score), quality=jnp.float32(1.0),
                   status=jnp.int32(TrackStatus.TRACKED), estimate=first_estimate,
                   num_iterations=jnp.int32(0), num_evaluations=jnp.int32(0))]
   for index, raw in enumerate(iterator, start=1):
@@ -254,12 +269,17 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
           " must have one size")
     carry, out = _frame_step(carry, image, constants, config=config)
     outputs.append(out)
+    if len(outputs) == _HOST_CHUNK:
+      chunks.append(_to_host(outputs))
+      outputs = []
     if progress:
       of = f"/{total}" if total else ""
       print(f"\rtracking: frame {index + 1}{of}", end="", file=sys.stderr, flush=True)
   if progress:
     print(file=sys.stderr)
-  stacked = jax.device_get({k: jnp.stack([o[k] for o in outputs]) for k in outputs[0]})
+  if outputs:
+    chunks.append(_to_host(outputs))
+  stacked = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
   corners, _ = homography.apply_to_points(jnp.asarray(stacked["homography"]),
                                           homography.rect_corners(shape))
   return TrackResult(
