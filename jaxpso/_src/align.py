@@ -396,9 +396,9 @@ _AGREE_PX = 1.0
 
 def _corner_gap(first, second, shape) -> jax.Array:
   """() the largest distance between the template corners that two (3, 3) homographies map."""
-  corners = homography.rect_corners(shape)
-  gap = homography.apply_to_points(first, corners)[0] - homography.apply_to_points(second, corners)[0]
-  return jnp.max(jnp.linalg.norm(gap, axis=-1))
+  gap = (homography.homography_to_corner_offsets(first, shape)
+         - homography.homography_to_corner_offsets(second, shape))
+  return jnp.max(jnp.linalg.norm(gap.reshape(4, 2), axis=-1))
 
 
 def register(frame: list, frame_shapes: list, template: Template, base, geometry, seed,
@@ -461,7 +461,8 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
       evaluations += 1
     return Registration(u=u, homography=normalized(to_h(u)), loss=loss,
                         quality=quality(loss, template, patch, mask, image_range, config),
-                        confirmed=jnp.asarray(False), num_iterations=iterations, num_evaluations=evaluations)
+                        confirmed=jnp.asarray(False), num_iterations=iterations,
+                        num_evaluations=evaluations)
 
   if config.method != "pso":
     u, loss, iterations, evaluations = baselines.register(
@@ -499,13 +500,13 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
     return jnp.concatenate([v, jnp.zeros(v.shape[:-1] + (dim - 2,), v.dtype)], axis=-1)
 
   def search(_) -> Registration:
-    searched = 2 if translation else dim
+    width = 2 if translation else dim  # the swarm's dimension
     to_u = lift if translation else (lambda v: v)
-    box = jnp.full(searched, radius, jnp.float32)
+    box = jnp.full(width, radius, jnp.float32)
     pso_config = dataclasses.replace(config.pso_config(), max_iterations=max_iterations,
                                      swarm_size=swarm_size or config.swarm_size)
     found = pso._run(seed, -box, box, None, pso.default_hparams(config.variant), None, None,
-                     jnp.zeros(searched, jnp.float32), box,
+                     jnp.zeros(width, jnp.float32), box,
                      loss_fn=lambda v, args: swarm_loss(to_u(v), args), config=pso_config)
     return descend(to_u(found.x), coarse, found.num_iterations, found.num_evaluations)
 
