@@ -18,8 +18,9 @@ from jaxpso import pso
 from jaxpso import similarity
 from jaxpso import warp
 
-# No example database: nothing is written to the working tree.
-SETTINGS = settings(max_examples=25, deadline=None, database=None)
+# No example database: nothing is written to the working tree.  Derandomised: every run (CI
+# included) draws the same examples, so a failure reproduces.
+SETTINGS = settings(max_examples=25, deadline=None, database=None, derandomize=True)
 
 SHAPE = (24, 32)  # template (h, w)
 RECT = np.float32([[0, 0], [31, 0], [31, 23], [0, 23]])
@@ -48,14 +49,14 @@ def _warp_round_trips(x, shift, y, points):
   a, b = _homography(x, shift), _homography(y, -shift)
   mapped, w = warp.apply_to_points(a, points)
   back, _ = warp.apply_to_points(warp.inverse(a), mapped)
-  composed, _ = warp.apply_to_points(warp.compose(a, b), points)
+  composed, composed_w = warp.apply_to_points(warp.compose(a, b), points)
   in_turn, _ = warp.apply_to_points(a, warp.apply_to_points(b, points)[0])
   identity = warp.compose(a, warp.inverse(a))
   offsets = warp.homography_to_corner_offsets(warp.corner_offsets_to_homography(x, SHAPE), SHAPE)
   levels = [warp.homography_from_level(warp.homography_to_level(a, level), level)
             for level in (1, 2, 3)]
   normalised = warp.normalize(a)
-  return dict(w=w, back=back, composed=composed, in_turn=in_turn,
+  return dict(w=w, back=back, composed=composed, composed_w=composed_w, in_turn=in_turn,
               identity=identity / identity[2, 2], offsets=offsets, a=a, levels=jnp.stack(levels),
               det=jnp.linalg.det(normalised),
               normalised_points=warp.apply_to_points(normalised, points)[0], mapped=mapped,
@@ -70,8 +71,10 @@ def test_warp_composition_inverse_and_parametrisation(x, shift, y, points):
   # Points through H and H⁻¹ come back; H H⁻¹ ~ I.
   np.testing.assert_allclose(out["back"], points, atol=2e-3)
   np.testing.assert_allclose(out["identity"], np.eye(3), atol=1e-4)
-  # (A B)(p) = A(B(p)).
-  np.testing.assert_allclose(out["composed"], out["in_turn"], rtol=1e-5, atol=2e-3)
+  # (A B)(p) = A(B(p)), away from A B's horizon (B's shift takes points up to 123 px outside
+  # the template, where w -> 0 and float32 coordinates of 10^4 px lose their last digits).
+  far = out["composed_w"] > 0.05
+  np.testing.assert_allclose(out["composed"][far], out["in_turn"][far], rtol=1e-5, atol=2e-3)
   # Corner offsets → homography → corner offsets.
   np.testing.assert_allclose(out["offsets"], x, atol=1e-3)
   # The corner homography maps each template corner to the corner plus its offset.
