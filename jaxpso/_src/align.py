@@ -35,6 +35,7 @@ from jaxpso._src import plane
 from jaxpso._src import pso
 from jaxpso._src import refine
 from jaxpso._src import sampling
+from jaxpso._src import sharding
 from jaxpso._src import similarity
 
 SIMILARITIES = ("mi", "ncc", "ssd")
@@ -335,9 +336,15 @@ def prepare_template(template, config: TrackConfig) -> Template:
 
 
 def prepare_frame(image, config: TrackConfig) -> tuple[list, list]:
-  """(H, W) grey image → each pyramid level packed by `sampling.pack_quads`, and their shapes."""
-  pyramid = sampling.gaussian_pyramid(image, config.levels)
-  return [sampling.pack_quads(level) for level in pyramid], [level.shape for level in pyramid]
+  """(H, W) grey image, or (R, H, W) images → each pyramid level packed by `sampling.pack_quads`
+  (((H_l−1)·(W_l−1), 4), with the leading R if batched), and the levels' (H_l, W_l)."""
+  def packed(image):
+    return [sampling.pack_quads(level) for level in sampling.gaussian_pyramid(image, config.levels)]
+
+  shapes = [tuple(image.shape[-2:])]
+  for _ in range(config.levels - 1):
+    shapes.append(tuple((size + 1) // 2 for size in shapes[-1]))  # what pyr_down gives
+  return (jax.vmap(packed)(image) if image.ndim == 3 else packed(image)), shapes
 
 
 def quality(loss, template: Template, patch, mask, image_range, config: TrackConfig):
@@ -401,28 +408,164 @@ def _corner_gap(first, second, shape) -> jax.Array:
   return jnp.max(jnp.linalg.norm(gap.reshape(4, 2), axis=-1))
 
 
+class _Registrar:
+  """One template's registration in one frame (unbatched): the pieces `register` maps over a batch.
+
+  Args:
+    frame: `prepare_frame` levels of one image.  frame_shapes: their (H, W).
+    template: one `Template`.  base: the motion's base ((3, 3) start
+    homography or (4, 4) base pose).  geometry: `motion.Plane` or None.
+    image_range: (2,) the MI binning range of the image (`image_range`), else None.
+  """
+
+  def __init__(self, frame, frame_shapes, template: Template, base, geometry, image_range,
+               config: TrackConfig):
+    self.frame, self.frame_shapes, self.template = frame, frame_shapes, template
+    self.image_range, self.config = image_range, config
+    self.loss_of, _ = _measure(config)
+    self.shape = template.pyramid[0].shape
+    self.dim = motion.dimension(config.motion, config.dof)
+    self.to_h = functools.partial(motion.to_homography, base=base, geometry=geometry,
+                                  shape=self.shape, motion=config.motion, dof=config.dof)
+
+  def at_level(self, u, level):
+    return homography.homography_to_level(self.to_h(u), level)
+
+  def warp_loss(self, level, reference, h, patches, mask):
+    """The loss of warps h (…, 3, 3) at `level`; +inf where not admissible."""
+    loss = self.loss_of(reference, patches, mask)
+    return jnp.where(motion.admissible(h, self.template.pyramid[level].shape), loss, jnp.inf)
+
+  def finish(self, u, iterations, evaluations, loss=None) -> Registration:
+    """The registration at u, its loss over every pixel computed unless given."""
+    h = self.at_level(u, 0)
+    patch, mask = sampling.sample_quads(self.frame[0], self.frame_shapes[0], h, self.shape)
+    if loss is None:
+      loss = self.warp_loss(0, self.template.reference(0, self.image_range), h, patch, mask)
+      evaluations += 1
+    return Registration(u=u, homography=normalized(self.to_h(u)), loss=loss,
+                        quality=quality(loss, self.template, patch, mask, self.image_range,
+                                        self.config),
+                        confirmed=jnp.asarray(False), num_iterations=iterations,
+                        num_evaluations=evaluations)
+
+  def baseline(self, max_iterations: int) -> Registration:
+    """`TrackConfig.method`'s gradient registration from the base."""
+    config, template = self.config, self.template
+    u, loss, iterations, evaluations = baselines.register(
+        config.method, self.frame, self.frame_shapes, template.pyramid, self.to_h, self.dim,
+        lambda level, h, patches, mask: self.warp_loss(
+            level, template.reference(level, self.image_range), h, patches, mask),
+        similarity=config.similarity, levels=config.levels, iterations=max_iterations)
+    return self.finish(u, iterations, evaluations, loss)
+
+  def descend(self, u, top: int, iterations, evaluations) -> Registration:
+    """u refined by Gauss–Newton from level `top` down to full resolution."""
+    config = self.config
+    for level in reversed(range(top + 1)):
+      grid, values, bins = self.template.selected[level]
+      reference = self.template.reference(level, self.image_range, selected=True)
+      u, _, taken = refine.gauss_newton(
+          u, self.frame[level], self.frame_shapes[level], grid, values,
+          bins if config.similarity == "mi" else None,
+          functools.partial(self.warp_loss, level, reference),
+          functools.partial(self.at_level, level=level), config.refine_steps, config.similarity,
+          _TOLERANCE * 2.0 ** level)
+      iterations, evaluations = iterations + taken, evaluations + taken
+    return self.finish(u, iterations, evaluations)  # the loss over every pixel
+
+  def start(self) -> Registration:
+    """The start refined from level 1 down."""
+    zero = jnp.zeros([], jnp.int32)
+    return self.descend(jnp.zeros(self.dim, jnp.float32), min(1, self.config.levels - 1), zero,
+                        zero)
+
+  def search(self, seed, radius, *, max_iterations: int, swarm_size: int, level: int,
+             translation: bool) -> Registration:
+    """The swarm at pyramid `level` over ±radius, its best refined down (see `register`)."""
+    config, dim = self.config, self.dim
+    reference = self.template.reference(level, self.image_range)
+
+    def swarm_loss(u, _):  # u: (n, D)
+      h = self.at_level(u, level)
+      patches, mask = sampling.sample_quads(self.frame[level], self.frame_shapes[level], h,
+                                            self.template.pyramid[level].shape)
+      return self.warp_loss(level, reference, h, patches, mask)
+
+    def lift(v):  # (…, 2) image translation → (…, D) parameters
+      if config.motion == "homography":
+        return jnp.tile(v, 4)
+      return jnp.concatenate([v, jnp.zeros(v.shape[:-1] + (dim - 2,), v.dtype)], axis=-1)
+
+    width = 2 if translation else dim  # the swarm's dimension
+    to_u = lift if translation else (lambda v: v)
+    box = jnp.full(width, radius, jnp.float32)
+    pso_config = dataclasses.replace(config.pso_config(), max_iterations=max_iterations,
+                                     swarm_size=swarm_size)
+    found = pso._run(seed, -box, box, None, pso.default_hparams(config.variant), None, None,
+                     jnp.zeros(width, jnp.float32), box,
+                     loss_fn=lambda v, args: swarm_loss(to_u(v), args), config=pso_config)
+    return self.descend(to_u(found.x), level, found.num_iterations, found.num_evaluations)
+
+
+def image_range(frame, template: Template, base, geometry, *, frame_shapes, config: TrackConfig):
+  """(2,) MI binning range: the template's and the image's where the base puts it (None unless MI)."""
+  if config.similarity != "mi":
+    return None
+  shape = template.pyramid[0].shape
+  h = motion.to_homography(jnp.zeros(motion.dimension(config.motion, config.dof), jnp.float32),
+                           base=base, geometry=geometry, shape=shape, motion=config.motion,
+                           dof=config.dof)
+  lo, hi = intensity_range(*sampling.sample_quads(frame[0], frame_shapes[0], h, shape))
+  return jnp.stack([jnp.minimum(lo, template.value_range[0]),
+                    jnp.maximum(hi, template.value_range[1])])
+
+
+def select(mask, first, second):
+  """Per batch element, `first` where the (R,) `mask` holds, else `second` (pytrees, leading R)."""
+  return jax.tree.map(
+      lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b),
+      first, second)
+
+
+def where_any(mask, compute: Callable, otherwise):
+  """`select(mask, compute(), otherwise)`, with `compute` run only when any of `mask` holds.
+
+  Under `vmap` a `lax.cond` on a per-element predicate runs both branches for
+  every element; gating at the batch level instead runs the costly branch
+  (the swarm, the retry, the recovery search) on frames where some element
+  needs it, and never on the others.
+  """
+  return jax.lax.cond(jnp.any(mask), lambda _: select(mask, compute(), otherwise),
+                      lambda _: otherwise, None)
+
+
 def register(frame: list, frame_shapes: list, template: Template, base, geometry, seed,
              radius, *, config: TrackConfig, max_iterations: int,
              swarm_size: int | None = None, accept: Callable | None = None,
              from_start: bool = True, search_level: int | None = None,
              translation: bool = False) -> Registration:
-  """Gauss–Newton from the start, then, unless `accept`ed, the swarm and Gauss–Newton.
+  """Gauss–Newton from the start, then, unless `accept`ed, the swarm and Gauss–Newton; batched.
 
+  Every per-template argument and the result have a leading batch axis R.
   The start is refined from level 1 down (the coarser levels' optimum can be
-  a wrong one near a start already in the right basin).  When `accept` says
+  a wrong one near a start already in the right basin).  Where `accept` says
   its loss is good enough, that is the result; otherwise the swarm searches
   the coarsest level, its best is refined down to full resolution, and the
-  better of the two is returned.
+  better of the two is returned.  The swarm runs for the whole batch when
+  any element needs it (`where_any`).
 
   Args:
-    frame: `prepare_frame` output.  frame_shapes: their (H, W), static.
-    template: `prepare_template` output.
-    base: the motion's base ((3, 3) start homography or (4, 4) base pose).
-    geometry: `motion.Plane` for motion "plane", else None.
-    seed: (2,) uint32 swarm seed.  radius: () search half-width, pixels.
+    frame: `prepare_frame` output, of one image shared by the batch
+      ((H_l−1)(W_l−1), 4) or of one image per element (R, …).
+    frame_shapes: their (H, W), static.
+    template: `prepare_template` outputs stacked (R, …).
+    base: (R, 3, 3) start homographies or (R, 4, 4) base poses.
+    geometry: `motion.Plane` (R, …) for motion "plane", else None.
+    seed: (R, 2) uint32 swarm seeds.  radius: () search half-width, pixels.
     config: settings.  max_iterations: the swarm's iteration cap (static).
     swarm_size: particles (static); `config.swarm_size` if None.
-    accept: `Registration` → () bool, or None to always run the swarm.
+    accept: `Registration` → (R,) bool, or None to always run the swarm.
     from_start: refine the start (static); False runs the swarm alone.
     search_level: the pyramid level the swarm searches (static); the
       coarsest if None.
@@ -430,148 +573,94 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
       only (static): every corner offset alike for "homography", (tx, ty)
       for "plane"; the refinement then adjusts all parameters.
   """
-  loss_of, _ = _measure(config)
-  coarse = config.levels - 1 if search_level is None else search_level
-  shape = template.pyramid[0].shape
-  to_h = functools.partial(motion.to_homography, base=base, geometry=geometry, shape=shape,
-                           motion=config.motion, dof=config.dof)
-  dim = motion.dimension(config.motion, config.dof)
+  frame_axis = 0 if frame[0].ndim == 3 else None
+  batched = (frame_axis, 0, 0, 0)
+  ranges = jax.vmap(functools.partial(image_range, frame_shapes=frame_shapes, config=config),
+                    in_axes=batched)(frame, template, base, geometry)
 
-  def at_level(u, level):
-    return homography.homography_to_level(to_h(u), level)
-
-  image_range = None
-  if config.similarity == "mi":  # the template's range and the image's where the start puts it
-    lo, hi = intensity_range(*sampling.sample_quads(
-        frame[0], frame_shapes[0], to_h(jnp.zeros(dim, jnp.float32)), shape))
-    image_range = jnp.stack([jnp.minimum(lo, template.value_range[0]),
-                             jnp.maximum(hi, template.value_range[1])])
-
-  def warp_loss(level, reference, h, patches, mask):
-    """The loss of warps h (…, 3, 3) at `level`; +inf where not admissible."""
-    loss = loss_of(reference, patches, mask)
-    return jnp.where(motion.admissible(h, template.pyramid[level].shape), loss, jnp.inf)
-
-  def finish(u, iterations, evaluations, loss=None) -> Registration:
-    """The registration at u, its loss over every pixel computed unless given."""
-    h = at_level(u, 0)
-    patch, mask = sampling.sample_quads(frame[0], frame_shapes[0], h, shape)
-    if loss is None:
-      loss = warp_loss(0, template.reference(0, image_range), h, patch, mask)
-      evaluations += 1
-    return Registration(u=u, homography=normalized(to_h(u)), loss=loss,
-                        quality=quality(loss, template, patch, mask, image_range, config),
-                        confirmed=jnp.asarray(False), num_iterations=iterations,
-                        num_evaluations=evaluations)
+  def mapped(method, *args):
+    """`method` of every element's `_Registrar` (args batched on axis 0)."""
+    def one(frame, template, base, geometry, image_range, *args):
+      registrar = _Registrar(frame, frame_shapes, template, base, geometry, image_range, config)
+      return method(registrar, *args)
+    return jax.vmap(one, in_axes=batched + (0,) * (1 + len(args)))(
+        frame, template, base, geometry, ranges, *args)
 
   if config.method != "pso":
-    u, loss, iterations, evaluations = baselines.register(
-        config.method, frame, frame_shapes, template.pyramid, to_h, dim,
-        lambda level, h, patches, mask: warp_loss(level, template.reference(level, image_range), h,
-                                                  patches, mask),
-        similarity=config.similarity, levels=config.levels, iterations=max_iterations)
-    return finish(u, iterations, evaluations, loss)
+    return mapped(lambda r: r.baseline(max_iterations))
 
-  def refine_at(level, u):
-    grid, values, bins = template.selected[level]
-    return refine.gauss_newton(
-        u, frame[level], frame_shapes[level], grid, values,
-        bins if config.similarity == "mi" else None,
-        functools.partial(warp_loss, level, template.reference(level, image_range, selected=True)),
-        functools.partial(at_level, level=level), config.refine_steps, config.similarity,
-        _TOLERANCE * 2.0 ** level)
-
-  def descend(u, top: int, iterations, evaluations) -> Registration:
-    """u refined from level `top` down to full resolution."""
-    for level in reversed(range(top + 1)):
-      u, _, taken = refine_at(level, u)
-      iterations, evaluations = iterations + taken, evaluations + taken
-    return finish(u, iterations, evaluations)  # the loss over every pixel
-
-  def swarm_loss(u, _):  # u: (n, D)
-    h = at_level(u, coarse)
-    patches, mask = sampling.sample_quads(frame[coarse], frame_shapes[coarse], h,
-                                          template.pyramid[coarse].shape)
-    return warp_loss(coarse, template.reference(coarse, image_range), h, patches, mask)
-
-  def lift(v):  # (…, 2) image translation → (…, D) parameters
-    if config.motion == "homography":
-      return jnp.tile(v, 4)
-    return jnp.concatenate([v, jnp.zeros(v.shape[:-1] + (dim - 2,), v.dtype)], axis=-1)
-
-  def search(_) -> Registration:
-    width = 2 if translation else dim  # the swarm's dimension
-    to_u = lift if translation else (lambda v: v)
-    box = jnp.full(width, radius, jnp.float32)
-    pso_config = dataclasses.replace(config.pso_config(), max_iterations=max_iterations,
-                                     swarm_size=swarm_size or config.swarm_size)
-    found = pso._run(seed, -box, box, None, pso.default_hparams(config.variant), None, None,
-                     jnp.zeros(width, jnp.float32), box,
-                     loss_fn=lambda v, args: swarm_loss(to_u(v), args), config=pso_config)
-    return descend(to_u(found.x), coarse, found.num_iterations, found.num_evaluations)
+  def search() -> Registration:
+    return mapped(lambda r, s: r.search(
+        s, radius, max_iterations=max_iterations, swarm_size=swarm_size or config.swarm_size,
+        level=config.levels - 1 if search_level is None else search_level,
+        translation=translation), seed)
 
   if not from_start:
-    return search(None)
-  zero = jnp.zeros([], jnp.int32)
-  start = descend(jnp.zeros(dim, jnp.float32), min(1, config.levels - 1), zero, zero)
-  good = jnp.asarray(False) if accept is None else accept(start)
+    return search()
+  start = mapped(_Registrar.start)
+  good = jnp.zeros(start.loss.shape, bool) if accept is None else accept(start)
+  shape = template.pyramid[0].shape[1:]
 
-  def searched(_):
-    found = search(None)
-    agree = _corner_gap(found.homography, start.homography, shape) <= _AGREE_PX
-    return better_of(found, start)._replace(confirmed=agree)
+  def searched() -> Registration:
+    found = search()
+    gap = jax.vmap(_corner_gap, in_axes=(0, 0, None))(found.homography, start.homography, shape)
+    return better_of(found, start)._replace(confirmed=gap <= _AGREE_PX)
 
-  return jax.lax.cond(good, lambda _: start._replace(confirmed=jnp.asarray(True)), searched, None)
+  return where_any(~good, searched, start._replace(confirmed=good))
 
 
 def better_of(first: Registration, second: Registration) -> Registration:
-  """The registration with the lower loss (the first on ties), counting both searches."""
-  keep = first.loss <= second.loss
-  best = jax.tree.map(lambda a, b: jnp.where(keep, a, b), first, second)
+  """Per element, the registration with the lower loss (the first on ties), counting both searches."""
+  best = select(first.loss <= second.loss, first, second)
   return best._replace(num_iterations=first.num_iterations + second.num_iterations,
                        num_evaluations=first.num_evaluations + second.num_evaluations)
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def _align(image, template, init_homography, offset, seed, geometry, *,
+def _align(images, templates, init_homographies, offsets, seeds, geometry, *,
            config: TrackConfig) -> AlignResult:
-  """`align` on the (H, W) window of the image whose top-left pixel is at `offset` (2,).
+  """`align` of a batch: (N, H, W) windows of the images whose top-left pixels are at `offsets` (N, 2).
 
-  `geometry` is the `motion.Plane` of motion "plane" in image coordinates, else None.
+  templates (N, h, w), init_homographies (N, 3, 3), seeds (N, 2); `geometry`
+  is the `motion.Plane` (N, …) of motion "plane" in image coordinates, else
+  None.  Every field of the result has the leading N axis.
   """
   _, sign = _measure(config)
-  frame, shapes = prepare_frame(image, config)
-  prepared = prepare_template(template, config)
-  to_window = homography.translation(-offset[0], -offset[1])
-  start = to_window @ init_homography
+  frame, shapes = prepare_frame(images, config)
+  prepared = jax.vmap(functools.partial(prepare_template, config=config))(templates)
+  to_window = jax.vmap(lambda o: homography.translation(-o[0], -o[1]))(offsets)
+  start = to_window @ init_homographies
   if geometry is not None:  # the same plane seen in window coordinates
     geometry = geometry._replace(camera=to_window @ geometry.camera,
                                  template_to_frame0=to_window @ geometry.template_to_frame0)
-    start = jnp.eye(4, dtype=jnp.float32)
+    start = jnp.broadcast_to(jnp.eye(4, dtype=jnp.float32), (len(offsets), 4, 4))
   search = functools.partial(register, frame, shapes, prepared, start, geometry,
                              config=config)
-  found = search(seed, jnp.float32(config.search_radius), max_iterations=config.max_iterations,
+  found = search(seeds, jnp.float32(config.search_radius), max_iterations=config.max_iterations,
                  accept=(None if config.accept_quality is None
                          else lambda found: found.quality >= config.accept_quality))
   weak = ~(found.quality >= config.retry_quality) & ~found.confirmed
 
-  def retry(_):
+  def retry():
     # A poor match: a second, larger swarm one level finer.
-    wide = search(seed ^ jnp.uint32(0x5BD1E995), jnp.float32(config.search_radius),
+    wide = search(seeds ^ jnp.uint32(0x5BD1E995), jnp.float32(config.search_radius),
                   max_iterations=config.max_iterations * config.recovery_scale,
                   swarm_size=config.swarm_size * config.recovery_scale, from_start=False,
                   search_level=max(0, config.levels - 2))
     return better_of(found, wide)
 
   if config.method == "pso":
-    found = jax.lax.cond(weak, retry, lambda _: found, None)
+    found = where_any(weak, retry, found)
   finite = jnp.isfinite(found.loss)
+  to_image = jax.vmap(lambda o: homography.translation(o[0], o[1]))(offsets)
+  pose = None
+  if geometry is not None:
+    pose = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(found.u, start, geometry)
   return AlignResult(
-      homography=normalized(homography.translation(offset[0], offset[1]) @ found.homography),
+      homography=jax.vmap(normalized)(to_image @ found.homography),
       score=sign * found.loss, quality=found.quality,
       status=jnp.where(finite, AlignStatus.SUCCESS, AlignStatus.NO_VALID_WARP).astype(jnp.int32),
-      num_iterations=found.num_iterations, num_evaluations=found.num_evaluations,
-      pose=None if geometry is None else motion.plane_pose(found.u, start, geometry, config.dof))
+      num_iterations=found.num_iterations, num_evaluations=found.num_evaluations, pose=pose)
 
 
 def normalized(h) -> jax.Array:
@@ -614,9 +703,49 @@ def plane_geometry(camera, plane_normal, frame_shape, h0, shape, dof):
                                shape, dof)
 
 
+def element_seeds(key, count: int) -> jax.Array:
+  """(count, 2) uint32 swarm seeds of a batch from one key; element 0's is the key's own."""
+  seed = pso._as_seed(key)
+  offsets = jnp.arange(count, dtype=jnp.uint32) * jnp.uint32(0x9E3779B9)
+  return jnp.stack([jnp.broadcast_to(seed[0], (count,)), seed[1] + offsets], axis=-1)
+
+
+def _check_start(start, template_shape, name: str) -> np.ndarray:
+  """A validated (3, 3) float64 start homography (ValueError naming `name`)."""
+  start = np.asarray(start)
+  if not np.issubdtype(start.dtype, np.number) or start.shape != (3, 3):
+    raise ValueError(f"{name} must be a (3, 3) real matrix, got {start.dtype}{start.shape}")
+  start = start.astype(np.float64)
+  if not np.all(np.isfinite(start)) or abs(np.linalg.det(start)) < 1e-12:
+    raise ValueError(f"{name} must be finite and invertible, got {start.tolist()!r}")
+  # w of one sign at the corners: the template is not cut by the horizon (-H is H).
+  rows, cols = template_shape
+  corners = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]])
+  depth = corners @ start[2, :2] + start[2, 2]
+  if not (np.all(depth > 0) or np.all(depth < 0)):
+    raise ValueError(f"{name} must map every template corner to a finite point"
+                     f" (w of one sign), got w = {depth.tolist()} for {start.tolist()!r}")
+  return start
+
+
+def _batch(value, batched: bool, name: str) -> list:
+  """The elements of a batched argument (a list of one if not batched)."""
+  if not batched:
+    return [value]
+  if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
+    raise TypeError(f"{name} must be a batch (a leading N axis), got {type(value).__name__}")
+  return list(value)
+
+
 def align(image, template, init_homography, *, config: TrackConfig = TrackConfig(),
-          key=0, camera=None, plane_normal=None) -> AlignResult:
-  """Registers `template` in `image`, starting from `init_homography`.
+          key=0, camera=None, plane_normal=None, devices=None) -> AlignResult:
+  """Registers `template` in `image`, starting from `init_homography`; or a batch of them.
+
+  A batch of N alignments is one compiled program (`vmap`): pass images
+  (N, H, W[, 3]), templates (N, h, w[, 3]) and init_homography (N, 3, 3)
+  (all images of one size, all templates of one size); every field of the
+  result gains the leading N axis.  With several devices the batch is split
+  over them (`jax.sharding`), results equal to one device's.
 
   Args:
     image: (H, W) grey or (H, W, 3) colour, uint8 or float in [0, 1].
@@ -625,49 +754,68 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
     config: `TrackConfig`.  With motion "plane" the search is over `dof`
       camera-motion parameters from the view in which `init_homography`
       holds (pose identity) and the result has the `pose`.
-    key: int seed or PRNG key of the swarm.
+    key: int seed or PRNG key of the swarm (element i of a batch gets its own
+      stream; element 0 that of the unbatched call).
     camera: (3, 3) intrinsics K of `image` (motion "plane"); default
-      f = max(H, W), principal point at the centre.
+      f = max(H, W), principal point at the centre.  Shared by a batch.
     plane_normal: (3,) unit normal of the template's plane in the camera
       coordinates of that view, n·X = d > 0 (motion "plane"); default
-      (0, 0, 1).  As for `track`.
+      (0, 0, 1).  As for `track`; shared by a batch.
+    devices: the `jax.Device`s a batch is split over; default every visible one.
 
   Returns:
     `AlignResult`.
   """
   if not isinstance(config, TrackConfig):
     raise TypeError(f"config must be a TrackConfig, got {type(config).__name__}")
-  image = to_gray(image, "image")
-  template = to_gray(template, "template")
-  spread = float(np.std(template))
-  if spread < 1e-3:
+  batched = np.ndim(init_homography) == 3
+  starts = _batch(init_homography, batched, "init_homography")
+  images = _batch(image, batched, "image")
+  templates = _batch(template, batched, "template")
+  if not len(images) == len(templates) == len(starts) >= 1:
     raise ValueError(
-        f"template is textureless (intensity std {spread:.2g} < 1e-3): nothing to align")
-  start = np.asarray(init_homography)
-  if not np.issubdtype(start.dtype, np.number) or start.shape != (3, 3):
-    raise ValueError(f"init_homography must be a (3, 3) real matrix, got {start.dtype}{start.shape}")
-  start = start.astype(np.float64)
-  if not np.all(np.isfinite(start)) or abs(np.linalg.det(start)) < 1e-12:
-    raise ValueError(f"init_homography must be finite and invertible, got {start.tolist()!r}")
-  # w of one sign at the corners: the template is not cut by the horizon (-H is H).
-  rows, cols = template.shape
-  corners = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]])
-  depth = corners @ start[2, :2] + start[2, 2]
-  if not (np.all(depth > 0) or np.all(depth < 0)):
-    raise ValueError("init_homography must map every template corner to a finite point"
-                     f" (w of one sign), got w = {depth.tolist()} for {start.tolist()!r}")
-  check_template_size(template.shape, config, "template")
+        f"a batch needs as many images, templates and init homographies (N >= 1), got"
+        f" {len(images)}, {len(templates)} and {len(starts)}")
+
+  def named(name, i):
+    return f"{name}[{i}]" if batched else name
+
+  images = [to_gray(x, named("image", i)) for i, x in enumerate(images)]
+  templates = [to_gray(x, named("template", i)) for i, x in enumerate(templates)]
+  for name, items in (("image", images), ("template", templates)):
+    if any(x.shape != items[0].shape for x in items):
+      raise ValueError(f"every {name} of a batch must have one shape, got"
+                       f" {sorted({x.shape for x in items})}")
+  for i, t in enumerate(templates):
+    spread = float(np.std(t))
+    if spread < 1e-3:
+      raise ValueError(f"{named('template', i)} is textureless (intensity std {spread:.2g}"
+                       " < 1e-3): nothing to align")
+  shape, image_shape = templates[0].shape, images[0].shape
+  starts = [_check_start(h, shape, named("init_homography", i)) for i, h in enumerate(starts)]
+  check_template_size(shape, config, "template")
   geometry = None
   if config.motion == "plane":
-    geometry = plane_geometry(camera, plane_normal, image.shape, start.astype(np.float32),
-                              template.shape,
-                              config.dof)
+    geometry = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[
+        plane_geometry(camera, plane_normal, image_shape, h.astype(np.float32), shape, config.dof)
+        for h in starts])
   elif camera is not None or plane_normal is not None:
     raise ValueError("camera and plane_normal apply to motion 'plane' only;"
                      f" got TrackConfig.motion={config.motion!r}")
-  x0, y0, width, height = _window(start, template.shape, image.shape, config)
-  return _align(image[y0:y0 + height, x0:x0 + width], template, start.astype(np.float32),
-                np.float32([x0, y0]), pso._as_seed(key), geometry, config=config)
+  windows = np.array([_window(h, shape, image_shape, config) for h in starts])
+  width, height = windows[:, 2].max(), windows[:, 3].max()  # one window size for the batch
+  x0 = np.minimum(windows[:, 0], image_shape[1] - width)
+  y0 = np.minimum(windows[:, 1], image_shape[0] - height)
+  crops = np.stack([np.asarray(im[y:y + height, x:x + width]) for im, x, y in zip(images, x0, y0)])
+  arguments = (crops, np.stack(templates), np.stack(starts).astype(np.float32),
+               np.stack([x0, y0], axis=-1).astype(np.float32), element_seeds(key, len(starts)),
+               geometry)
+  mesh = sharding.batch_mesh(devices, len(starts))
+  arguments = sharding.split(sharding.pad(arguments, sharding.padded_size(len(starts), mesh)),
+                             mesh)
+  result = jax.tree.map(lambda a: a[:len(starts)] if batched else a[0],
+                        _align(*arguments, config=config))
+  return result
 
 
 # The window `align` works in is a multiple of this many pixels each way, so

@@ -66,8 +66,12 @@ from typing import Any, NamedTuple
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.sharding import Mesh
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec
 
 from jaxpso._src import checks
+from jaxpso._src import sharding
 
 VARIANTS = ("inertia", "linear_inertia", "constriction", "trelea1", "trelea2", "spso2011")
 """Names accepted by `PSOConfig.variant` (see the module docstring)."""
@@ -763,23 +767,48 @@ def step(state: PSOState, loss_fn: Callable, lower, upper, args: Any = None, *,
   return _step(state, loss_fn, lower, upper, args, hparams, config)
 
 
-@functools.partial(jax.jit, static_argnames=("loss_fn", "config"))
+def _split_swarm(state: PSOState, mesh) -> PSOState:
+  """`state` constrained to lie particle-wise over the mesh (unchanged without one)."""
+  if mesh is None:
+    return state
+  def spec(*axes):
+    return NamedSharding(mesh, PartitionSpec(*axes))
+  particles, replicated = spec(None, sharding.AXIS), spec()
+  layout = state._replace(
+      x=particles, v=particles, best_x=particles, loss=spec(sharding.AXIS),
+      best_loss=spec(sharding.AXIS), informants=spec(sharding.AXIS, None), swarm_x=replicated,
+      swarm_loss=replicated, iteration=replicated, stall=replicated, num_evaluations=replicated,
+      seed=replicated)
+  return jax.lax.with_sharding_constraint(state, layout)
+
+
+@functools.partial(jax.jit, static_argnames=("loss_fn", "config", "mesh"))
 def _run(key, lower, upper, args, hparams, positions, velocities, centre, scale, *,
-         loss_fn, config):
-  state = _init(key, loss_fn, lower, upper, args, config, positions, velocities, centre, scale)
+         loss_fn, config, mesh=None):
+  state = _split_swarm(
+      _init(key, loss_fn, lower, upper, args, config, positions, velocities, centre, scale), mesh)
 
   def running(s):
     return ~functools.reduce(jnp.logical_or, _stopped(s, config))
 
   def body(s):
-    return _step(s, loss_fn, lower, upper, args, hparams, config)
+    return _split_swarm(_step(s, loss_fn, lower, upper, args, hparams, config), mesh)
 
   return _result(jax.lax.while_loop(running, body, state), config)
 
 
+def _swarm_mesh(devices, swarm_size: int):
+  """The mesh a swarm is split over: as many of `devices` as divide `swarm_size`, or None."""
+  mesh = sharding.batch_mesh(devices, swarm_size)
+  if mesh is None:
+    return None
+  count = max(c for c in range(1, mesh.size + 1) if swarm_size % c == 0)
+  return None if count == 1 else Mesh(mesh.devices[:count], (sharding.AXIS,))
+
+
 def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
         config: PSOConfig = PSOConfig(), hparams: PSOHParams | None = None,
-        positions=None, velocities=None, centre=None, scale=None) -> PSOResult:
+        positions=None, velocities=None, centre=None, scale=None, devices=None) -> PSOResult:
   """Minimises `loss_fn` over the box [lower, upper] with one `lax.while_loop`.
 
   The loop stops at the first of: `max_iterations`, stagnation for
@@ -799,6 +828,10 @@ def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
     config: static settings.
     hparams: coefficients; `default_hparams(config.variant)` if None.
     positions, velocities, centre, scale: warm start, as for `init`.
+    devices: the `jax.Device`s the swarm's particles are split over (XLA's
+      SPMD partitioner over a `jax.sharding.Mesh`; the global best is
+      reduced across them, results equal one device's); default every
+      visible one.  As many are used as divide `config.swarm_size`.
 
   Returns:
     `PSOResult`.
@@ -815,7 +848,7 @@ def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
   lower, upper, hparams, positions, velocities, centre, scale = _prepare(
       lower, upper, hparams, config, positions, velocities, centre, scale)
   return _run(key, lower, upper, args, hparams, positions, velocities, centre, scale,
-              loss_fn=loss_fn, config=config)
+              loss_fn=loss_fn, config=config, mesh=_swarm_mesh(devices, config.swarm_size))
 
 
 @functools.partial(jax.jit, static_argnames=("loss_fn", "config", "keep_positions"))

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import enum
 import functools
+import itertools
 import sys
 from typing import NamedTuple
 
@@ -31,6 +32,7 @@ from jaxpso._src import motion
 from jaxpso._src import plane
 from jaxpso._src import pso
 from jaxpso._src import sampling
+from jaxpso._src import sharding
 
 
 class TrackStatus(enum.IntEnum):
@@ -65,17 +67,17 @@ class TrackResult(NamedTuple):
 
 
 class _Constants(NamedTuple):
-  """What every frame step shares (a pytree)."""
+  """What every frame step shares (a pytree; every leaf has the leading region axis R)."""
   template: align.Template
   geometry: motion.Plane | None
-  seed: jax.Array
+  seed: jax.Array  # (R, 2) uint32
 
 
 class _Carry(NamedTuple):
-  """The tracker's state between frames (a pytree)."""
-  estimate: jax.Array  # (3, 3) homography or (4, 4) pose: the last good estimate
+  """The tracker's state between frames (a pytree; leading region axis R)."""
+  estimate: jax.Array  # (R, 3, 3) homography or (R, 4, 4) pose: the last good estimate
   velocity: jax.Array  # same shape: estimate_t · estimate_{t-1}⁻¹
-  frame: jax.Array  # () int32 index of the next frame
+  frame: jax.Array  # (R,) int32 index of the next frame
 
 
 def _inverse(m):
@@ -88,27 +90,41 @@ def _frame_seed(seed, frame):
 
 
 @functools.partial(jax.jit, static_argnames=("config",))
-def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.TrackConfig):
-  """One frame: (carry, (H, W) grey image) → (carry, per-frame outputs)."""
-  frame, shapes = align.prepare_frame(image, config)
-  template = constants.template
-  shape = template.pyramid[0].shape
-  loss_of, sign = align._measure(config)
-  to_h = functools.partial(motion.to_homography, geometry=constants.geometry, shape=shape,
-                           motion=config.motion, dof=config.dof)
-  dim = motion.dimension(config.motion, config.dof)
-  zero = jnp.zeros(dim, jnp.float32)
+def _prepare(templates, config: align.TrackConfig) -> align.Template:
+  """(R, h, w) templates → their `align.Template`s stacked (one compiled program)."""
+  return jax.vmap(functools.partial(align.prepare_template, config=config))(templates)
 
-  start = carry.estimate
-  if config.predict:
-    predicted = carry.velocity @ carry.estimate
-    both = jnp.stack([to_h(zero, predicted), to_h(zero, carry.estimate)])
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.TrackConfig):
+  """One frame of R regions: (carry, (H, W) image shared or (R, H, W) one per region) →
+  (carry, per-frame outputs, each with the leading R)."""
+  frame, shapes = align.prepare_frame(image, config)
+  frame_axis = 0 if image.ndim == 3 else None
+  template = constants.template
+  shape = template.pyramid[0].shape[1:]
+  loss_of, sign = align._measure(config)
+  zero = jnp.zeros(motion.dimension(config.motion, config.dof), jnp.float32)
+
+  def homography_of(estimate, geometry):  # one region's estimate → (3, 3)
+    return motion.to_homography(zero, base=estimate, geometry=geometry, shape=shape,
+                                motion=config.motion, dof=config.dof)
+
+  def predict(frame, template, estimate, velocity, geometry):
+    """The constant-velocity prediction or the previous estimate, whichever scores better."""
+    predicted = velocity @ estimate
+    both = jnp.stack([homography_of(predicted, geometry), homography_of(estimate, geometry)])
     patches, masks = sampling.sample_quads(frame[0], shapes[0], both, shape)
     losses = loss_of(template.reference(0, align.intensity_range(patches[1], masks[1])),
                      patches, masks)
-    start = jnp.where(losses[0] <= losses[1], predicted, carry.estimate)
+    return jnp.where(losses[0] <= losses[1], predicted, estimate)
 
-  seed = _frame_seed(constants.seed, carry.frame)
+  start = carry.estimate
+  if config.predict:
+    start = jax.vmap(predict, in_axes=(frame_axis, 0, 0, 0, 0))(
+        frame, template, carry.estimate, carry.velocity, constants.geometry)
+
+  seed = jax.vmap(_frame_seed)(constants.seed, carry.frame)
   search = functools.partial(align.register, frame, shapes, template, geometry=constants.geometry,
                              config=config)
   found = search(base=start, seed=seed, radius=jnp.float32(config.search_radius),
@@ -117,30 +133,32 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
                          else lambda found: found.quality >= config.accept_quality))
   weak = ~(found.quality >= config.lost_quality)
 
-  def recover(_):
+  def recover():
     # What accumulates while the target is lost is mostly translation, and a
     # swarm over every motion parameter in the wide box seldom found it.
     wide = search(base=carry.estimate, seed=seed ^ jnp.uint32(0x5BD1E995),
                   radius=jnp.float32(config.search_radius * config.recovery_scale),
                   max_iterations=config.max_iterations * config.recovery_scale,
                   swarm_size=config.swarm_size * config.recovery_scale, translation=True)
-    base = jnp.where(found.loss <= wide.loss, start, carry.estimate)
+    base = align.select(found.loss <= wide.loss, start, carry.estimate)
     return align.better_of(found, wide), base
 
   base = start
   if config.method == "pso":
-    found, base = jax.lax.cond(weak, recover, lambda _: (found, start), None)
+    found, base = align.where_any(weak, recover, (found, start))
   quality = found.quality
-  lost = ~(quality >= config.lost_quality) | ~jnp.all(jnp.isfinite(found.u))
+  lost = ~(quality >= config.lost_quality) | ~jnp.all(jnp.isfinite(found.u), axis=-1)
   status = jnp.where(lost, TrackStatus.LOST,
                      jnp.where(weak, TrackStatus.RECOVERED, TrackStatus.TRACKED)).astype(jnp.int32)
 
-  estimate = (found.homography if config.motion == "homography"
-              else motion.plane_pose(found.u, base, constants.geometry, config.dof))
-  estimate = jnp.where(lost, carry.estimate, estimate)
-  velocity = jnp.where(lost, jnp.eye(estimate.shape[0], dtype=estimate.dtype),
-                       estimate @ _inverse(carry.estimate))
-  h = align.normalized(to_h(zero, estimate))
+  estimate = found.homography
+  if config.motion != "homography":
+    estimate = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(
+        found.u, base, constants.geometry)
+  estimate = align.select(lost, carry.estimate, estimate)
+  identity = jnp.broadcast_to(jnp.eye(estimate.shape[-1], dtype=estimate.dtype), estimate.shape)
+  velocity = align.select(lost, identity, estimate @ jax.vmap(_inverse)(carry.estimate))
+  h = jax.vmap(lambda e, g: align.normalized(homography_of(e, g)))(estimate, constants.geometry)
   outputs = dict(homography=h, score=sign * found.loss,
                  quality=quality, status=status, estimate=estimate,
                  num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
@@ -156,9 +174,9 @@ _HOST_CHUNK = 256
 
 
 def _to_host(outputs: list) -> dict:
-  """Per-frame output dicts → one dict of (n, ...) NumPy arrays (waits for the last frame)."""
+  """Per-frame output dicts of (R, ...) → one dict of (R, n, ...) NumPy arrays (waits for the last)."""
   host = jax.device_get(outputs)
-  return {k: np.stack([o[k] for o in host]) for k in host[0]}
+  return {k: np.stack([o[k] for o in host], axis=1) for k in host[0]}
 
 
 def _frames(frames):
@@ -174,18 +192,46 @@ def _frames(frames):
   return iter(frames), (len(frames) if hasattr(frames, "__len__") else None)
 
 
-def _template_geometry(roi, frame_shape):
-  """roi → (template → frame-0 homography (3, 3), template shape (h, w))."""
+_END = object()
+
+
+def _lockstep(sequences, count: int):
+  """An iterator over lists holding frame t of each of `count` sequences, and their length if known."""
+  if isinstance(sequences, (np.ndarray, jax.Array)):
+    if sequences.ndim not in (4, 5):
+      raise ValueError(f"with sequences=True, frames must be (R, T, H, W) or (R, T, H, W, 3), or R"
+                       f" iterables of frames; got an array of shape {sequences.shape}")
+  elif isinstance(sequences, (str, bytes)) or not hasattr(sequences, "__len__"):
+    raise TypeError("with sequences=True, frames must be an array or a sequence of R sequences,"
+                    f" got {type(sequences).__name__}")
+  if len(sequences) != count:
+    raise ValueError(f"with sequences=True, frames must hold one sequence per region: {count}"
+                     f" regions, {len(sequences)} sequences")
+  iterators, lengths = zip(*(_frames(s) for s in sequences))
+
+  def steps():
+    for index, step in enumerate(itertools.zip_longest(*iterators, fillvalue=_END)):
+      if any(f is _END for f in step):
+        raise ValueError(f"the sequences must have one length: some end after {index} frames,"
+                         " some do not")
+      yield list(step)
+
+  known = None if None in lengths else lengths[0]
+  return steps(), known
+
+
+def _template_geometry(roi, frame_shape, name: str = "roi"):
+  """roi → (template → frame-0 homography (3, 3) float64, template shape (h, w))."""
   array = np.asarray(roi, np.float64) if not isinstance(roi, (str, bytes)) else None
   if array is None or array.shape not in ((4,), (4, 2)):
-    raise ValueError(f"roi must be (x, y, w, h) or (4, 2) corners TL, TR, BR, BL; got {roi!r}")
+    raise ValueError(f"{name} must be (x, y, w, h) or (4, 2) corners TL, TR, BR, BL; got {roi!r}")
   if not np.all(np.isfinite(array)):
-    raise ValueError(f"roi must be finite, got {roi!r}")
+    raise ValueError(f"{name} must be finite, got {roi!r}")
   height, width = frame_shape
   if array.shape == (4,):
     x, y, w, h = array
     if w < 1 or h < 1 or w != int(w) or h != int(h):
-      raise ValueError(f"roi width and height must be positive integers, got {roi!r}")
+      raise ValueError(f"{name} width and height must be positive integers, got {roi!r}")
     corners = np.array([[x, y], [x + w - 1, y], [x + w - 1, y + h - 1], [x, y + h - 1]])
     shape = (int(h), int(w))
   else:
@@ -195,25 +241,53 @@ def _template_geometry(roi, frame_shape):
     shape = (int(round(h)) + 1, int(round(w)) + 1)
     if not np.all(np.asarray(motion.corner_turns(corners)) > 0) or min(shape) < 2:
       raise ValueError(
-          f"roi corners must form a convex, non-degenerate quadrilateral in the order TL, TR,"
+          f"{name} corners must form a convex, non-degenerate quadrilateral in the order TL, TR,"
           f" BR, BL (clockwise on the image), got {roi!r}")
   if (corners.min(axis=0) < 0).any() or corners[:, 0].max() > width - 1 or corners[:, 1].max() > height - 1:
-    raise ValueError(f"roi {roi!r} must lie inside frame 0 of shape {frame_shape}")
+    raise ValueError(f"{name} {roi!r} must lie inside frame 0 of shape {frame_shape}")
   rect = np.asarray(homography.rect_corners(shape), np.float64)
   h0 = np.asarray(homography.homography_from_corners(jnp.asarray(rect, jnp.float32),
-                                                     jnp.asarray(corners, jnp.float32)))
-  return jnp.asarray(h0 / h0[2, 2], jnp.float32), shape
+                                                     jnp.asarray(corners, jnp.float32)), np.float64)
+  return h0 / h0[2, 2], shape
+
+
+def _regions(roi):
+  """roi → (list of single rois, whether it was a batch)."""
+  if isinstance(roi, (str, bytes)):
+    raise ValueError(f"roi must be (x, y, w, h) or (4, 2) corners, or a batch of them; got {roi!r}")
+  ndim = np.ndim(roi)
+  batched = ndim == 3 or (ndim == 2 and np.shape(roi)[-1] == 4)
+  if batched and len(roi) == 0:
+    raise ValueError("roi must hold at least one region, got an empty batch")
+  return (list(roi) if batched else [roi]), batched
+
+
+def _to_own_grid(shape, common):
+  """(3, 3) scale from a region's template pixels (h, w) to the batch's common grid."""
+  return np.diag([(common[1] - 1) / max(shape[1] - 1, 1), (common[0] - 1) / max(shape[0] - 1, 1),
+                  1.0])
 
 
 def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0, camera=None,
-          plane_normal=None, progress: bool = False) -> TrackResult:
-  """Tracks the region `roi` of frame 0 through `frames`.
+          plane_normal=None, sequences: bool = False, devices=None,
+          progress: bool = False) -> TrackResult:
+  """Tracks the region `roi` of frame 0 through `frames`; or a batch of regions.
+
+  A batch of R regions, `roi` of shape (R, 4) or (R, 4, 2), is tracked in one
+  compiled program (`vmap` over the templates); every field of the result
+  gains a leading R axis.  The templates are sampled on one common grid (the
+  largest region's height and width), and the homographies are reported
+  from each region's own template pixels.  With `sequences=True` region r is
+  tracked in sequence r of `frames`.  Costly searches (the swarm, the
+  recovery) run for the whole batch on frames where any region needs them.
+  With several devices the regions are split over them (`jax.sharding`).
 
   Args:
     frames: (T, H, W) or (T, H, W, 3) array, or any iterable of frames (a
       video reader), uint8 or float in [0, 1], grey or colour, all one size.
+      With `sequences=True`: (R, T, H, W[, 3]), or R such sequences of one length.
     roi: (x, y, w, h) box in frame 0 (integer w, h), or (4, 2) corners TL,
-      TR, BR, BL in frame-0 pixels.
+      TR, BR, BL in frame-0 pixels; or (R, 4) boxes or (R, 4, 2) corners.
     config: `TrackConfig` (motion, similarity, swarm, refinement, recovery).
     key: int seed or PRNG key; a fixed key gives bit-identical results.
     camera: (3, 3) intrinsics K for motion "plane"; default f = max(H, W) and
@@ -221,7 +295,10 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
     plane_normal: (3,) normal of the target plane in frame-0 camera
       coordinates with n·X = d > 0 on the plane (d is taken as 1, so
       translations are in units of the plane's distance); default (0, 0, 1),
-      fronto-parallel.  A rough normal is allowed.
+      fronto-parallel.  A rough normal is allowed.  Shared by a batch.
+    sequences: `frames` holds one sequence per region.
+    devices: the `jax.Device`s the regions are split over; default every
+      visible one.
     progress: print a progress line to stderr.
 
   Returns:
@@ -234,39 +311,80 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   """
   if not isinstance(config, align.TrackConfig):
     raise TypeError(f"config must be a TrackConfig, got {type(config).__name__}")
-  iterator, total = _frames(frames)
+  rois, batched = _regions(roi)
+  count = len(rois)
+  if sequences:
+    iterator, total = _lockstep(frames, count)
+  else:
+    single, total = _frames(frames)
+    iterator = ([frame] for frame in single)
   first = next(iterator, None)
   if first is None:
     raise ValueError("frames must hold at least one frame, got none")
-  frame0 = align.to_gray(first, "frames[0]")
-  h0, shape = _template_geometry(roi, frame0.shape)
-  align.check_template_size(shape, config, "roi")
-  template = sampling.warp_image(frame0, h0, shape)[0]
-  if float(jnp.std(template)) < 1e-3:
-    raise ValueError(f"roi {roi!r} is textureless (intensity std < 1e-3): nothing to track")
-  prepared = align.prepare_template(template, config)
+  names = [f"frames[{r}][0]" for r in range(count)] if sequences else ["frames[0]"]
+  frame0 = [align.to_gray(f, name) for f, name in zip(first, names)]
+  if any(f.shape != frame0[0].shape for f in frame0):
+    raise ValueError(f"the sequences' frames must have one size, got {[f.shape for f in frame0]}")
+  frame_shape = frame0[0].shape
+
+  def name(r):
+    return f"roi[{r}]" if batched else "roi"
+
+  regions = [_template_geometry(roi, frame_shape, name(r)) for r, roi in enumerate(rois)]
+  for r, (_, shape) in enumerate(regions):
+    align.check_template_size(shape, config, name(r))
+  common = tuple(max(shape[i] for _, shape in regions) for i in (0, 1))
+  to_own = np.stack([_to_own_grid(shape, common) for _, shape in regions])
+  starts = np.stack([h0 for h0, _ in regions]) @ np.linalg.inv(to_own)  # common grid → frame 0
+  templates = []
+  for r in range(count):
+    template = sampling.warp_image(frame0[r if sequences else 0], jnp.asarray(starts[r], jnp.float32),
+                                   common)[0]
+    if float(jnp.std(template)) < 1e-3:
+      raise ValueError(f"{name(r)} {rois[r]!r} is textureless (intensity std < 1e-3): nothing to"
+                       " track")
+    templates.append(template)
   geometry = None
   if config.motion == "plane":
-    geometry = align.plane_geometry(camera, plane_normal, frame0.shape, h0, shape, config.dof)
+    geometry = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[
+        align.plane_geometry(camera, plane_normal, frame_shape, jnp.asarray(h, jnp.float32),
+                             common, config.dof) for h in starts])
   elif camera is not None or plane_normal is not None:
     raise ValueError("camera and plane_normal apply to motion 'plane' only;"
                      f" got TrackConfig.motion={config.motion!r}")
-  constants = _Constants(prepared, geometry, pso._as_seed(key))
-  first_estimate = h0 if geometry is None else jnp.eye(4, dtype=jnp.float32)
-  carry = _Carry(first_estimate, jnp.eye(first_estimate.shape[0], dtype=jnp.float32),
-                 jnp.ones([], jnp.int32))
+  starts = starts.astype(np.float32)
+  size = 3 if geometry is None else 4
+  first_estimate = starts if geometry is None else np.broadcast_to(np.eye(4, dtype=np.float32),
+                                                                   (count, 4, 4))
+  mesh = sharding.batch_mesh(devices, count)
+  padded = sharding.padded_size(count, mesh)
 
-  first_score = 0.0 if config.similarity == "ssd" else -prepared.self_loss
-  chunks = []
-  outputs = [dict(homography=h0, score=jnp.float32(first_score), quality=jnp.float32(1.0),
-                  status=jnp.int32(TrackStatus.TRACKED), estimate=first_estimate,
-                  num_iterations=jnp.int32(0), num_evaluations=jnp.int32(0))]
+  def place(tree):  # padded, split over the devices
+    return sharding.split(sharding.pad(tree, padded), mesh)
+
+  prepared = _prepare(place(np.stack(templates)), config)
+  constants = _Constants(prepared, place(geometry), place(align.element_seeds(key, count)))
+  carry = place(_Carry(first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32),
+                                                       (count, size, size)),
+                       np.ones(count, np.int32)))
+
+  first_score = (np.zeros(count, np.float32) if config.similarity == "ssd"
+                 else -np.asarray(prepared.self_loss)[:count])
+  chunks = [{k: v[:, None] for k, v in dict(
+      homography=starts, score=first_score, quality=np.ones(count, np.float32),
+      status=np.full(count, TrackStatus.TRACKED, np.int32), estimate=np.asarray(first_estimate),
+      num_iterations=np.zeros(count, np.int32),
+      num_evaluations=np.zeros(count, np.int32)).items()}]
+  outputs = []
   for index, raw in enumerate(iterator, start=1):
-    image = align.to_gray(raw, f"frames[{index}]")
-    if image.shape != frame0.shape:
-      raise ValueError(
-          f"frames[{index}] has shape {image.shape}, frame 0 has {frame0.shape}: all frames"
-          " must have one size")
+    images = [align.to_gray(f, f"frames[{r}][{index}]" if sequences else f"frames[{index}]")
+              for r, f in enumerate(raw)]
+    for r, image in enumerate(images):
+      if image.shape != frame_shape:
+        where = f"frames[{r}][{index}]" if sequences else f"frames[{index}]"
+        raise ValueError(f"{where} has shape {image.shape}, frame 0 has {frame_shape}: all"
+                         " frames must have one size")
+    image = place(np.stack(images)) if sequences else sharding.replicate(images[0], mesh)
     carry, out = _frame_step(carry, image, constants, config=config)
     outputs.append(out)
     if len(outputs) == _HOST_CHUNK:
@@ -279,11 +397,15 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
     print(file=sys.stderr)
   if outputs:
     chunks.append(_to_host(outputs))
-  stacked = {k: np.concatenate([c[k] for c in chunks]) for k in chunks[0]}
-  corners, _ = homography.apply_to_points(jnp.asarray(stacked["homography"]),
-                                          homography.rect_corners(shape))
-  return TrackResult(
-      homographies=stacked["homography"], corners=np.asarray(corners),
+  stacked = {k: np.concatenate([c[k][:count] for c in chunks], axis=1) for k in chunks[0]}
+  own = stacked["homography"] @ to_own[:, None]  # own template pixels → frame
+  own = own / own[..., 2:, 2:]
+  corners = np.stack([np.asarray(homography.apply_to_points(
+      jnp.asarray(own[r]), homography.rect_corners(shape))[0]) for r, (_, shape) in
+                      enumerate(regions)])
+  result = TrackResult(
+      homographies=own.astype(np.float32), corners=corners,
       scores=stacked["score"], quality=stacked["quality"], status=stacked["status"],
       poses=stacked["estimate"] if geometry is not None else None,
       num_iterations=stacked["num_iterations"], num_evaluations=stacked["num_evaluations"])
+  return result if batched else jax.tree.map(lambda a: a[0], result)

@@ -1,0 +1,83 @@
+"""Splitting a batch (of regions, alignments or particles) over devices with `jax.sharding`.
+
+A batch's leading axis is laid out over a 1-D `Mesh` of the chosen devices
+(`NamedSharding(mesh, P("batch"))`); what the whole batch shares (a frame) is
+replicated.  The compiled programs are the unsharded ones: XLA's SPMD
+partitioner splits them, each device computing its share, and inserts the
+cross-device reductions (the batch-level `any` that gates the swarm, the
+swarm's global best).  A batch is padded, repeating its last element, to a
+multiple of the number of devices; the padding is dropped from the results.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh
+from jax.sharding import NamedSharding
+from jax.sharding import PartitionSpec
+
+AXIS = "batch"
+
+
+def batch_mesh(devices, size: int) -> Mesh | None:
+  """The 1-D mesh a batch of `size` elements is split over, or None to leave placement alone.
+
+  Args:
+    devices: a sequence of `jax.Device`s, or None for every visible device
+      (None is returned when there is only one).
+    size: the batch size; no more devices than elements are used.
+
+  Raises:
+    TypeError / ValueError: `devices` is not a non-empty sequence of distinct devices.
+  """
+  if devices is None:
+    devices = jax.devices()
+    if len(devices) == 1:
+      return None
+  else:
+    if isinstance(devices, (str, bytes, jax.Device)) or not hasattr(devices, "__iter__"):
+      raise TypeError(f"devices must be a sequence of jax.Device, got {devices!r}")
+    devices = list(devices)
+    if not devices:
+      raise ValueError("devices must name at least one device, got none")
+    if not all(isinstance(d, jax.Device) for d in devices):
+      raise TypeError(f"devices must be a sequence of jax.Device, got {devices!r}")
+    if len(set(devices)) != len(devices):
+      raise ValueError(f"devices must be distinct, got {devices!r}")
+  return Mesh(np.array(devices[:max(1, size)]), (AXIS,))
+
+
+def padded_size(size: int, mesh: Mesh | None) -> int:
+  """`size` rounded up to a multiple of the mesh's devices."""
+  count = 1 if mesh is None else mesh.size
+  return -(-size // count) * count
+
+
+def pad(tree, size: int):
+  """Pads every leaf's leading axis to `size` by repeating its last element (NumPy or JAX)."""
+  def grow(a):
+    missing = size - a.shape[0]
+    if missing == 0:
+      return a
+    return np.concatenate([np.asarray(a), np.repeat(np.asarray(a)[-1:], missing, axis=0)])
+  return jax.tree.map(grow, tree)
+
+
+def split(tree, mesh: Mesh | None):
+  """Lays every leaf's leading axis out over the mesh (JAX arrays on the default device without one).
+
+  NumPy leaves become JAX arrays either way: a compiled step fed NumPy first
+  and its own JAX outputs next would be cached twice.
+  """
+  if mesh is None:
+    return jax.tree.map(jnp.asarray, tree)
+  return jax.device_put(tree, NamedSharding(mesh, PartitionSpec(AXIS)))
+
+
+def replicate(tree, mesh: Mesh | None):
+  """A copy of every leaf on every device of the mesh (unchanged without one)."""
+  if mesh is None:
+    return tree
+  return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))

@@ -1,0 +1,183 @@
+"""Batches: `track` over R regions of one video or R sequences, `align` over N triples.
+
+A batch is one compiled program (`vmap` over the templates); every element
+must come out as it does alone.  One small config (SSD, one pyramid level)
+keeps the compile count and time down.
+"""
+
+import dataclasses
+import functools
+
+import cv2
+import numpy as np
+import pytest
+
+import jaxpso
+from jaxpso._src import align as align_module
+from jaxpso._src import track as track_module
+from jaxpso.data import load_image
+
+CONFIG = jaxpso.TrackConfig(similarity="ssd", levels=1, swarm_size=16, max_iterations=15,
+                            search_radius=8.0)
+
+
+@functools.cache
+def _sequence(seed: int) -> jaxpso.synthetic.Sequence:
+  return jaxpso.synthetic.make_sequence(seed, num_frames=6, frame_shape=(120, 160),
+                                        roi_size=(48, 48))
+
+
+def _box_corners(box):
+  x, y, w, h = box
+  return np.float32([[x, y], [x + w - 1, y], [x + w - 1, y + h - 1], [x, y + h - 1]])
+
+
+def _true_corners(sequence, corners0):
+  """(T, 4, 2) where the plane carries frame-0 points `corners0` (4, 2) in every frame."""
+  out = []
+  for truth in sequence.corners:
+    h = cv2.getPerspectiveTransform(np.float32(sequence.corners[0]), np.float32(truth))
+    out.append(cv2.perspectiveTransform(np.float32(corners0)[None], h)[0])
+  return np.stack(out)
+
+
+def _alone(sequence, roi, **kwargs):
+  return jaxpso.track(sequence.frames, roi, config=CONFIG, **kwargs)
+
+
+def test_regions_of_one_video_track_as_they_do_alone():
+  sequence = _sequence(0)
+  x, y, w, h = sequence.roi
+  rois = np.array([sequence.roi, (x + 6, y - 4, w, h)])
+  batch = jaxpso.track(sequence.frames, rois, config=CONFIG, key=0)
+  assert batch.homographies.shape == (2, 6, 3, 3) and batch.status.shape == (2, 6)
+  assert batch.corners.shape == (2, 6, 4, 2) and batch.poses is None
+  alone = _alone(sequence, rois[0], key=0)  # region 0 has the key's own stream
+  np.testing.assert_allclose(batch.corners[0], alone.corners, atol=1e-3)
+  np.testing.assert_array_equal(batch.status[0], alone.status)
+  for r, roi in enumerate(rois):
+    truth = _true_corners(sequence, _box_corners(roi))
+    error = np.sqrt(np.mean(np.sum((batch.corners[r] - truth) ** 2, axis=-1), axis=-1))
+    assert error.max() < 1.0, (r, error)
+  assert np.all(batch.status == jaxpso.TrackStatus.TRACKED)
+
+
+def test_regions_of_different_sizes_given_as_corners():
+  # Templates of 48×48, 30×40 and a skewed quad are sampled on one 48×48
+  # grid; each homography maps the region's own template pixels.
+  sequence = _sequence(0)
+  x, y, w, h = sequence.roi
+  quads = np.stack([_box_corners(sequence.roi), _box_corners((x + 8, y + 4, 30, 40)),
+                    np.float32([[x + 2, y + 1], [x + 40, y + 5], [x + 44, y + 46], [x, y + 40]])])
+  batch = jaxpso.track(sequence.frames, quads, config=CONFIG, key=0)
+  np.testing.assert_allclose(batch.corners[:, 0], quads, atol=1e-3)
+  small = batch.homographies[1, 0] @ np.array([29.0, 39.0, 1.0])  # its own BR corner
+  np.testing.assert_allclose(small[:2] / small[2], quads[1, 2], atol=1e-3)
+  for r in range(3):
+    truth = _true_corners(sequence, quads[r])
+    error = np.sqrt(np.mean(np.sum((batch.corners[r] - truth) ** 2, axis=-1), axis=-1))
+    assert error.max() < 1.0, (r, error)
+
+
+def test_a_batch_of_sequences_tracks_each_as_alone():
+  first, second = _sequence(0), _sequence(3)
+  frames = np.stack([first.frames, second.frames])
+  batch = jaxpso.track(frames, np.array([first.roi, second.roi]), config=CONFIG, key=0,
+                       sequences=True)
+  listed = jaxpso.track([list(first.frames), iter(second.frames)],
+                        np.array([first.roi, second.roi]), config=CONFIG, key=0, sequences=True)
+  np.testing.assert_array_equal(listed.homographies, batch.homographies)
+  np.testing.assert_allclose(batch.corners[0], _alone(first, first.roi, key=0).corners, atol=1e-3)
+  for r, sequence in enumerate((first, second)):
+    error = np.sqrt(np.mean(np.sum((batch.corners[r] - sequence.corners) ** 2, axis=-1), axis=-1))
+    assert error.max() < 1.0, (r, error)
+
+
+def test_a_repeated_batch_adds_no_compiled_program():
+  sequence = _sequence(0)
+  x, y, w, h = sequence.roi
+  rois = np.array([sequence.roi, (x + 6, y - 4, w, h)])
+  jaxpso.track(sequence.frames[:3], rois, config=CONFIG, key=1)
+  size = track_module._frame_step._cache_size()
+  jaxpso.track(sequence.frames[2:], rois - np.array([2, 2, 0, 0]), config=CONFIG, key=2)
+  assert track_module._frame_step._cache_size() == size
+
+
+def test_costly_searches_run_for_the_batch_only_when_a_region_needs_them():
+  # Gauss–Newton alone is accepted on these small motions: no swarm runs, so
+  # no frame of the batch costs a swarm's evaluations.
+  sequence = _sequence(0)
+  batch = jaxpso.track(sequence.frames, np.array([sequence.roi, sequence.roi]), config=CONFIG)
+  assert batch.num_evaluations[:, 1:].max() < CONFIG.swarm_size
+  # A region over a frame of noise needs the recovery; the other region keeps its own result.
+  noisy = sequence.frames.copy()
+  x, y, w, h = sequence.roi
+  noisy[3, :, 80:] = np.random.default_rng(0).uniform(size=noisy[3, :, 80:].shape)
+  left = (4, 30, 40, 40)
+  mixed = jaxpso.track(noisy, np.array([left, (110, 30, 40, 40)]), config=CONFIG)
+  alone = jaxpso.track(noisy, left, config=CONFIG)
+  assert mixed.status[1, 3] == jaxpso.TrackStatus.LOST
+  np.testing.assert_allclose(mixed.corners[0], alone.corners, atol=1e-3)
+  np.testing.assert_array_equal(mixed.num_evaluations[0], alone.num_evaluations)
+
+
+# --- align ------------------------------------------------------------------------------------
+
+IMAGE = load_image("camera")
+SIZE = 64
+SOURCE = np.float32([[0, 0], [SIZE - 1, 0], [SIZE - 1, SIZE - 1], [0, SIZE - 1]])
+ALIGN = dataclasses.replace(CONFIG, levels=2, search_radius=12.0)
+
+
+def _triple(seed):
+  rng = np.random.default_rng(seed)
+  x, y = rng.integers(60, 380, 2)
+  template = IMAGE[y:y + SIZE, x:x + SIZE].copy()
+  corners = SOURCE + np.float32([x, y]) + rng.normal(0, 2.0, (4, 2)).astype(np.float32)
+  truth = SOURCE + np.float32([x, y])
+  return template, cv2.getPerspectiveTransform(SOURCE, corners), truth
+
+
+def test_a_batch_of_alignments_equals_them_one_by_one():
+  triples = [_triple(seed) for seed in range(3)]
+  templates, starts, truths = (np.stack(a) for a in zip(*triples))
+  batch = jaxpso.align(np.stack([IMAGE] * 3), templates, starts, config=ALIGN, key=4)
+  assert batch.homography.shape == (3, 3, 3) and batch.status.shape == (3,)
+  alone = jaxpso.align(IMAGE, templates[0], starts[0], config=ALIGN, key=4)
+  np.testing.assert_allclose(batch.homography[0], alone.homography, atol=1e-4)
+  for i in range(3):
+    mapped = cv2.perspectiveTransform(SOURCE[None], np.float64(batch.homography[i]))[0]
+    assert np.abs(mapped - truths[i]).max() < 0.5, i
+  compiled = align_module._align._cache_size()
+  jaxpso.align(np.stack([IMAGE] * 3), templates[::-1], starts[::-1], config=ALIGN, key=5)
+  assert align_module._align._cache_size() == compiled
+
+
+# --- bad input --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("call, match", [
+    (lambda s: jaxpso.track(s.frames, np.zeros((0, 4))), "at least one region"),
+    (lambda s: jaxpso.track(np.stack([s.frames] * 2), np.array([s.roi] * 3), sequences=True),
+     "one sequence per region: 3 regions, 2 sequences"),
+    (lambda s: jaxpso.track([s.frames, s.frames[:4]], np.array([s.roi] * 2), sequences=True),
+     "one length"),
+    (lambda s: jaxpso.track(s.frames[0], np.array([s.roi] * 2), sequences=True),
+     r"\(R, T, H, W\)"),
+    (lambda s: jaxpso.track(s.frames, np.array([s.roi, (150, 0, 48, 48)])), r"roi\[1\]"),
+    (lambda s: jaxpso.track(s.frames, np.array([s.roi, (0, 0, 48, 48)]), devices=[]),
+     "at least one device"),
+    (lambda s: jaxpso.track(s.frames, np.array([s.roi] * 2), devices="cpu"), "jax.Device"),
+    (lambda s: jaxpso.align(np.stack([IMAGE] * 2), np.stack([IMAGE[:64, :64]] * 3),
+                            np.stack([np.eye(3)] * 2)), "as many images, templates"),
+    (lambda s: jaxpso.align([IMAGE, IMAGE[:, :400]], np.stack([IMAGE[:64, :64]] * 2),
+                            np.stack([np.eye(3)] * 2)), "every image of a batch"),
+    (lambda s: jaxpso.align(np.stack([IMAGE] * 2), [IMAGE[:64, :64], IMAGE[:64, :60]],
+                            np.stack([np.eye(3)] * 2)), "every template of a batch"),
+    (lambda s: jaxpso.align(np.stack([IMAGE] * 2), np.stack([IMAGE[:64, :64]] * 2),
+                            np.stack([np.eye(3), np.zeros((3, 3))])),
+     r"init_homography\[1\] must be finite and invertible"),
+])
+def test_bad_batches_name_the_problem(call, match):
+  with pytest.raises((ValueError, TypeError), match=match):
+    call(_sequence(0))
