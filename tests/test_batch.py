@@ -9,6 +9,8 @@ import dataclasses
 import functools
 
 import cv2
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -119,6 +121,25 @@ def test_costly_searches_run_for_the_batch_only_when_a_region_needs_them():
   assert mixed.status[1, 3] == jaxpso.TrackStatus.LOST
   np.testing.assert_allclose(mixed.corners[0], alone.corners, atol=1e-3)
   np.testing.assert_array_equal(mixed.num_evaluations[0], alone.num_evaluations)
+
+
+@pytest.mark.parametrize("size", [1, 5, 17])
+def test_where_needed_computes_exactly_the_needing_elements(size):
+  # compute() marks what it was asked for; every needing element is
+  # computed once, no other element is written, in ceil(R / 8)-sized rounds.
+  values = jnp.arange(size, dtype=jnp.float32)
+
+  @jax.jit
+  def run(mask):
+    def compute(indices):
+      return (values[indices] + 100.0, jnp.ones_like(indices))
+    return align_module.where_needed(mask, compute, (values, jnp.zeros(size, jnp.int32)))
+
+  for mask in [np.zeros(size, bool), np.ones(size, bool),
+               np.random.default_rng(size).uniform(size=size) < 0.3]:
+    result, computed = run(mask)
+    np.testing.assert_array_equal(result, np.where(mask, np.arange(size) + 100.0, np.arange(size)))
+    np.testing.assert_array_equal(computed, mask)
 
 
 # --- align ------------------------------------------------------------------------------------

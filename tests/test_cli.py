@@ -89,10 +89,11 @@ def test_ci_runs_the_readme_test_command():
 def test_readme_python_examples_run(capsys):
   readme = (ROOT / "README.md").read_text()
   blocks = re.findall(r"```python\n(.*?)```", readme, re.S)
-  assert len(blocks) == 3
+  assert len(blocks) == 4
   for block in blocks:
     exec(compile(block, "README.md", "exec"), {})
   printed = capsys.readouterr().out
   assert "STAGNATED" in printed or "MAX_ITERATIONS" in printed
   median = float(re.search(r"median corner error ([0-9.]+) px", printed).group(1))
   assert median < 1.0 and "'TRACKED'" in printed
+  assert "(3, 10, 4, 2) [0 0 0]" in printed  # the batch: three regions, all TRACKED

@@ -528,23 +528,56 @@ def select(mask, first, second):
       first, second)
 
 
-def where_any(mask, compute: Callable, otherwise):
-  """`select(mask, compute(), otherwise)`, with `compute` run only when any of `mask` holds.
+def take(tree, indices):
+  """The elements `indices` (C,) of every leaf's leading axis."""
+  return jax.tree.map(lambda a: a[indices], tree)
 
-  Under `vmap` a `lax.cond` on a per-element predicate runs both branches for
-  every element; gating at the batch level instead runs the costly branch
-  (the swarm, the retry, the recovery search) on frames where some element
-  needs it, and never on the others.
+
+# A batch of R runs its costly searches on at most ceil(R / _SHARE) elements
+# at a time (`where_needed`).
+_SHARE = 8
+
+
+def where_needed(mask, compute: Callable, otherwise):
+  """`otherwise` with the elements where the (R,) `mask` holds replaced by `compute`'s.
+
+  `compute(indices)` gets (C,) element indices and returns those elements'
+  results (leading C).  Only the elements that need it are computed, C =
+  ceil(R / _SHARE) at a time in a `lax.while_loop` of as many rounds as
+  needed (none when no element does).  Under `vmap` a per-element
+  `lax.cond` would run the costly branch (the swarm, the retry, the recovery
+  search) for every element on every frame.
   """
-  return jax.lax.cond(jnp.any(mask), lambda _: select(mask, compute(), otherwise),
-                      lambda _: otherwise, None)
+  size = mask.shape[0]
+  capacity = -(-size // _SHARE)
+  padded = -(-size // capacity) * capacity
+  needed = jnp.sum(mask)
+  # The needing elements first; every other slot is the out-of-range index `size`.
+  order = jnp.argsort(~mask, stable=True)
+  order = jnp.where(jnp.arange(size) < needed, order, size)
+  order = jnp.concatenate([order, jnp.full(padded - size, size, order.dtype)])
+
+  def round_(state):
+    done, results = state
+    indices = jax.lax.dynamic_slice(order, (done,), (capacity,))
+    found = compute(jnp.minimum(indices, size - 1))
+    results = jax.tree.map(lambda a, f: a.at[indices].set(f, mode="drop"), results, found)
+    return done + capacity, results
+
+  def rounds(_):
+    return jax.lax.while_loop(lambda state: state[0] < needed, round_,
+                              (jnp.zeros([], needed.dtype), otherwise))[1]
+
+  # The cond keeps frames that need nothing from entering the loop at all:
+  # with zero rounds it still cost a 1-region track 16 ms per frame (4 ms).
+  return jax.lax.cond(needed > 0, rounds, lambda _: otherwise, None)
 
 
 def register(frame: list, frame_shapes: list, template: Template, base, geometry, seed,
              radius, *, config: TrackConfig, max_iterations: int,
              swarm_size: int | None = None, accept: Callable | None = None,
              from_start: bool = True, search_level: int | None = None,
-             translation: bool = False) -> Registration:
+             translation: bool = False, indices=None) -> Registration:
   """Gauss–Newton from the start, then, unless `accept`ed, the swarm and Gauss–Newton; batched.
 
   Every per-template argument and the result have a leading batch axis R.
@@ -552,8 +585,8 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
   a wrong one near a start already in the right basin).  Where `accept` says
   its loss is good enough, that is the result; otherwise the swarm searches
   the coarsest level, its best is refined down to full resolution, and the
-  better of the two is returned.  The swarm runs for the whole batch when
-  any element needs it (`where_any`).
+  better of the two is returned.  The swarm runs only for the elements that
+  need it (`where_needed`).
 
   Args:
     frame: `prepare_frame` output, of one image shared by the batch
@@ -572,28 +605,37 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
     translation: the swarm searches the template's 2-D image translation
       only (static): every corner offset alike for "homography", (tx, ty)
       for "plane"; the refinement then adjusts all parameters.
+    indices: (C,) register only these elements (the result has the leading
+      C); all if None.
   """
   frame_axis = 0 if frame[0].ndim == 3 else None
+  if indices is not None:
+    if frame_axis == 0:
+      frame = take(frame, indices)
+    template, base, geometry, seed = take((template, base, geometry, seed), indices)
   batched = (frame_axis, 0, 0, 0)
   ranges = jax.vmap(functools.partial(image_range, frame_shapes=frame_shapes, config=config),
                     in_axes=batched)(frame, template, base, geometry)
 
-  def mapped(method, *args):
-    """`method` of every element's `_Registrar` (args batched on axis 0)."""
+  def mapped(method, *args, indices=None):
+    """`method` of every element's (or the `indices`') `_Registrar` (args batched on axis 0)."""
     def one(frame, template, base, geometry, image_range, *args):
       registrar = _Registrar(frame, frame_shapes, template, base, geometry, image_range, config)
       return method(registrar, *args)
-    return jax.vmap(one, in_axes=batched + (0,) * (1 + len(args)))(
-        frame, template, base, geometry, ranges, *args)
+    inputs = (frame, template, base, geometry, ranges) + args
+    if indices is not None:
+      inputs = tuple(x if axis is None else take(x, indices)
+                     for x, axis in zip(inputs, batched + (0,) * (1 + len(args))))
+    return jax.vmap(one, in_axes=batched + (0,) * (1 + len(args)))(*inputs)
 
   if config.method != "pso":
     return mapped(lambda r: r.baseline(max_iterations))
 
-  def search() -> Registration:
+  def search(indices=None) -> Registration:
     return mapped(lambda r, s: r.search(
         s, radius, max_iterations=max_iterations, swarm_size=swarm_size or config.swarm_size,
         level=config.levels - 1 if search_level is None else search_level,
-        translation=translation), seed)
+        translation=translation), seed, indices=indices)
 
   if not from_start:
     return search()
@@ -601,12 +643,12 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
   good = jnp.zeros(start.loss.shape, bool) if accept is None else accept(start)
   shape = template.pyramid[0].shape[1:]
 
-  def searched() -> Registration:
-    found = search()
-    gap = jax.vmap(_corner_gap, in_axes=(0, 0, None))(found.homography, start.homography, shape)
-    return better_of(found, start)._replace(confirmed=gap <= _AGREE_PX)
+  def searched(indices) -> Registration:
+    found, began = search(indices), take(start, indices)
+    gap = jax.vmap(_corner_gap, in_axes=(0, 0, None))(found.homography, began.homography, shape)
+    return better_of(found, began)._replace(confirmed=gap <= _AGREE_PX)
 
-  return where_any(~good, searched, start._replace(confirmed=good))
+  return where_needed(~good, searched, start._replace(confirmed=good))
 
 
 def better_of(first: Registration, second: Registration) -> Registration:
@@ -641,16 +683,16 @@ def _align(images, templates, init_homographies, offsets, seeds, geometry, *,
                          else lambda found: found.quality >= config.accept_quality))
   weak = ~(found.quality >= config.retry_quality) & ~found.confirmed
 
-  def retry():
+  def retry(indices):
     # A poor match: a second, larger swarm one level finer.
     wide = search(seeds ^ jnp.uint32(0x5BD1E995), jnp.float32(config.search_radius),
                   max_iterations=config.max_iterations * config.recovery_scale,
                   swarm_size=config.swarm_size * config.recovery_scale, from_start=False,
-                  search_level=max(0, config.levels - 2))
-    return better_of(found, wide)
+                  search_level=max(0, config.levels - 2), indices=indices)
+    return better_of(take(found, indices), wide)
 
   if config.method == "pso":
-    found = where_any(weak, retry, found)
+    found = where_needed(weak, retry, found)
   finite = jnp.isfinite(found.loss)
   to_image = jax.vmap(lambda o: homography.translation(o[0], o[1]))(offsets)
   pose = None
@@ -813,9 +855,10 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
   mesh = sharding.batch_mesh(devices, len(starts))
   arguments = sharding.split(sharding.pad(arguments, sharding.padded_size(len(starts), mesh)),
                              mesh)
-  result = jax.tree.map(lambda a: a[:len(starts)] if batched else a[0],
-                        _align(*arguments, config=config))
-  return result
+  result = _align(*arguments, config=config)
+  if mesh is not None and not all(a.is_fully_addressable for a in jax.tree.leaves(result)):
+    result = sharding.to_host(result)  # spread over several processes (jax.distributed)
+  return jax.tree.map(lambda a: a[:len(starts)] if batched else a[0], result)
 
 
 # The window `align` works in is a multiple of this many pixels each way, so

@@ -4,7 +4,7 @@ A batch's leading axis is laid out over a 1-D `Mesh` of the chosen devices
 (`NamedSharding(mesh, P("batch"))`); what the whole batch shares (a frame) is
 replicated.  The compiled programs are the unsharded ones: XLA's SPMD
 partitioner splits them, each device computing its share, and inserts the
-cross-device reductions (the batch-level `any` that gates the swarm, the
+cross-device communication (gathering the elements that need a swarm, the
 swarm's global best).  A batch is padded, repeating its last element, to a
 multiple of the number of devices; the padding is dropped from the results.
 """
@@ -14,6 +14,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.experimental import multihost_utils
 from jax.sharding import Mesh
 from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec
@@ -81,3 +82,12 @@ def replicate(tree, mesh: Mesh | None):
   if mesh is None:
     return tree
   return jax.device_put(tree, NamedSharding(mesh, PartitionSpec()))
+
+
+def to_host(tree):
+  """Every leaf as a NumPy array, gathered from all processes when it spans several hosts."""
+  def fetch(a):
+    if isinstance(a, jax.Array) and not a.is_fully_addressable:
+      return np.asarray(multihost_utils.process_allgather(a, tiled=True))
+    return np.asarray(jax.device_get(a))
+  return jax.tree.map(fetch, tree)

@@ -133,19 +133,20 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
                          else lambda found: found.quality >= config.accept_quality))
   weak = ~(found.quality >= config.lost_quality)
 
-  def recover():
+  def recover(indices):
     # What accumulates while the target is lost is mostly translation, and a
     # swarm over every motion parameter in the wide box seldom found it.
     wide = search(base=carry.estimate, seed=seed ^ jnp.uint32(0x5BD1E995),
                   radius=jnp.float32(config.search_radius * config.recovery_scale),
                   max_iterations=config.max_iterations * config.recovery_scale,
-                  swarm_size=config.swarm_size * config.recovery_scale, translation=True)
-    base = align.select(found.loss <= wide.loss, start, carry.estimate)
-    return align.better_of(found, wide), base
+                  swarm_size=config.swarm_size * config.recovery_scale, translation=True,
+                  indices=indices)
+    alone, began, last = align.take((found, start, carry.estimate), indices)
+    return align.better_of(alone, wide), align.select(alone.loss <= wide.loss, began, last)
 
   base = start
   if config.method == "pso":
-    found, base = align.where_any(weak, recover, (found, start))
+    found, base = align.where_needed(weak, recover, (found, start))
   quality = found.quality
   lost = ~(quality >= config.lost_quality) | ~jnp.all(jnp.isfinite(found.u), axis=-1)
   status = jnp.where(lost, TrackStatus.LOST,
@@ -175,7 +176,7 @@ _HOST_CHUNK = 256
 
 def _to_host(outputs: list) -> dict:
   """Per-frame output dicts of (R, ...) → one dict of (R, n, ...) NumPy arrays (waits for the last)."""
-  host = jax.device_get(outputs)
+  host = sharding.to_host(outputs)
   return {k: np.stack([o[k] for o in host], axis=1) for k in host[0]}
 
 
@@ -221,7 +222,7 @@ def _lockstep(sequences, count: int):
 
 
 def _template_geometry(roi, frame_shape, name: str = "roi"):
-  """roi → (template → frame-0 homography (3, 3) float64, template shape (h, w))."""
+  """roi → (its (4, 2) corners TL, TR, BR, BL in frame 0, template shape (h, w))."""
   array = np.asarray(roi, np.float64) if not isinstance(roi, (str, bytes)) else None
   if array is None or array.shape not in ((4,), (4, 2)):
     raise ValueError(f"{name} must be (x, y, w, h) or (4, 2) corners TL, TR, BR, BL; got {roi!r}")
@@ -245,10 +246,7 @@ def _template_geometry(roi, frame_shape, name: str = "roi"):
           f" BR, BL (clockwise on the image), got {roi!r}")
   if (corners.min(axis=0) < 0).any() or corners[:, 0].max() > width - 1 or corners[:, 1].max() > height - 1:
     raise ValueError(f"{name} {roi!r} must lie inside frame 0 of shape {frame_shape}")
-  rect = np.asarray(homography.rect_corners(shape), np.float64)
-  h0 = np.asarray(homography.homography_from_corners(jnp.asarray(rect, jnp.float32),
-                                                     jnp.asarray(corners, jnp.float32)), np.float64)
-  return h0 / h0[2, 2], shape
+  return corners, shape
 
 
 def _regions(roi):
@@ -262,10 +260,16 @@ def _regions(roi):
   return (list(roi) if batched else [roi]), batched
 
 
-def _to_own_grid(shape, common):
+def _to_common_grid(shape, common):
   """(3, 3) scale from a region's template pixels (h, w) to the batch's common grid."""
   return np.diag([(common[1] - 1) / max(shape[1] - 1, 1), (common[0] - 1) / max(shape[0] - 1, 1),
                   1.0])
+
+
+def _rect(shape) -> np.ndarray:
+  """(4, 2) float32 template corners of `shape` (`homography.rect_corners` on the host)."""
+  h, w = shape
+  return np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
 
 
 def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0, camera=None,
@@ -278,8 +282,8 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   gains a leading R axis.  The templates are sampled on one common grid (the
   largest region's height and width), and the homographies are reported
   from each region's own template pixels.  With `sequences=True` region r is
-  tracked in sequence r of `frames`.  Costly searches (the swarm, the
-  recovery) run for the whole batch on frames where any region needs them.
+  tracked in sequence r of `frames`.  The costly searches (the swarm, the
+  recovery) run only for the regions that need them (`align.where_needed`).
   With several devices the regions are split over them (`jax.sharding`).
 
   Args:
@@ -334,16 +338,21 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   for r, (_, shape) in enumerate(regions):
     align.check_template_size(shape, config, name(r))
   common = tuple(max(shape[i] for _, shape in regions) for i in (0, 1))
-  to_own = np.stack([_to_own_grid(shape, common) for _, shape in regions])
-  starts = np.stack([h0 for h0, _ in regions]) @ np.linalg.inv(to_own)  # common grid → frame 0
-  templates = []
-  for r in range(count):
-    template = sampling.warp_image(frame0[r if sequences else 0], jnp.asarray(starts[r], jnp.float32),
-                                   common)[0]
-    if float(jnp.std(template)) < 1e-3:
-      raise ValueError(f"{name(r)} {rois[r]!r} is textureless (intensity std < 1e-3): nothing to"
-                       " track")
-    templates.append(template)
+  to_common = np.stack([_to_common_grid(shape, common) for _, shape in regions])
+  # Common grid → frame 0, for every region at once (eager calls per region
+  # cost more than tracking a frame of a 64-region batch).
+  starts = np.asarray(homography.homography_from_corners(
+      _rect(common), np.stack([corners for corners, _ in regions]).astype(np.float32)), np.float64)
+  starts = starts / starts[:, 2:, 2:]
+  if sequences:
+    templates = jnp.stack([sampling.warp_image(f, jnp.asarray(h, jnp.float32), common)[0]
+                           for f, h in zip(frame0, starts)])
+  else:
+    templates = sampling.warp_image(frame0[0], jnp.asarray(starts, jnp.float32), common)[0]
+  spread = np.asarray(jnp.std(templates, axis=(1, 2)))
+  for r in np.flatnonzero(spread < 1e-3):
+    raise ValueError(f"{name(r)} {rois[r]!r} is textureless (intensity std < 1e-3): nothing to"
+                     " track")
   geometry = None
   if config.motion == "plane":
     geometry = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[
@@ -362,14 +371,14 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   def place(tree):  # padded, split over the devices
     return sharding.split(sharding.pad(tree, padded), mesh)
 
-  prepared = _prepare(place(np.stack(templates)), config)
+  prepared = _prepare(place(templates), config)
   constants = _Constants(prepared, place(geometry), place(align.element_seeds(key, count)))
   carry = place(_Carry(first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32),
                                                        (count, size, size)),
                        np.ones(count, np.int32)))
 
   first_score = (np.zeros(count, np.float32) if config.similarity == "ssd"
-                 else -np.asarray(prepared.self_loss)[:count])
+                 else -sharding.to_host(prepared.self_loss)[:count])
   chunks = [{k: v[:, None] for k, v in dict(
       homography=starts, score=first_score, quality=np.ones(count, np.float32),
       status=np.full(count, TrackStatus.TRACKED, np.int32), estimate=np.asarray(first_estimate),
@@ -398,11 +407,10 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   if outputs:
     chunks.append(_to_host(outputs))
   stacked = {k: np.concatenate([c[k][:count] for c in chunks], axis=1) for k in chunks[0]}
-  own = stacked["homography"] @ to_own[:, None]  # own template pixels → frame
+  own = stacked["homography"] @ to_common[:, None]  # own template pixels → frame
   own = own / own[..., 2:, 2:]
-  corners = np.stack([np.asarray(homography.apply_to_points(
-      jnp.asarray(own[r]), homography.rect_corners(shape))[0]) for r, (_, shape) in
-                      enumerate(regions)])
+  mapped = stacked["homography"] @ np.c_[_rect(common), np.ones(4, np.float32)].T  # (R, T, 3, 4)
+  corners = np.swapaxes(mapped[..., :2, :] / mapped[..., 2:, :], -1, -2)
   result = TrackResult(
       homographies=own.astype(np.float32), corners=corners,
       scores=stacked["score"], quality=stacked["quality"], status=stacked["status"],
