@@ -216,6 +216,8 @@ _LO, _HI = np.zeros(2, np.float32), np.ones(2, np.float32)
      "-1"),
     ("scale-nan", dict(centre=np.zeros(2, np.float32), scale=np.nan), ValueError, "scale",
      "nan"),
+    ("centre-outside", dict(centre=np.float32([0.0, 9.0]), scale=1.0), ValueError, "centre",
+     "inside the box"),
 ))
 @pytest.mark.parametrize("function", [pso.run, pso.trace, pso.init])
 def test_pso(function, kwargs, error, argument, value):

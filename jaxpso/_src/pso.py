@@ -711,6 +711,11 @@ def _prepare(lower, upper, hparams, config, positions, velocities, centre, scale
     if positions is not None:
       raise ValueError("give either positions or centre and scale, not both")
     centre = _exact(centre, (d,), "centre")
+    if not isinstance(centre, jax.core.Tracer) and not isinstance(lower, jax.core.Tracer) and (
+        np.any(np.asarray(centre) < np.asarray(lower))
+        or np.any(np.asarray(centre) > np.asarray(upper))):
+      raise ValueError(f"centre must lie inside the box [lower, upper], got {np.asarray(centre)}"
+                       f" for lower {np.asarray(lower)}, upper {np.asarray(upper)}")
     scale = checks.as_float_array(scale, "scale")
     if scale.shape not in ((), (d,)):
       raise ValueError(f"scale must be a scalar or shape ({d},), got shape {scale.shape}")
