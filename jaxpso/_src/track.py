@@ -1,16 +1,18 @@
-"""Frame-by-frame tracking of a planar region: `track`.
+"""Frame-by-frame tracking of planar regions: `track`.
 
-Frame 0's region is the template.  Every later frame is one call of one
-compiled program (`_frame_step`): the frame's pyramid, a start chosen between
+Frame 0's region is the template; a batch of R regions (or of R sequences)
+is tracked together, every step `vmap`ped over the regions.  Every later
+frame is one call of one compiled program (`_frame_step`): the frame's
+pyramid, a start chosen between
 the constant-velocity prediction and the previous estimate, the registration
 of `align.register` (Gauss–Newton from the start; when that falls short of
 `TrackConfig.accept_quality`, the swarm and Gauss–Newton from its best), a
 quality check and, when the quality is low, a recovery search around the last
 good estimate: a larger swarm over the template's translation in a wider box,
-then Gauss–Newton (a `lax.cond`, compiled once with the rest).  A frame whose
-quality stays low is LOST: the last good estimate is kept and the motion
-prediction is reset.  For motion "plane" the
-camera pose is accumulated, T̂ ← T(x) · T̂.  With a gradient baseline
+then Gauss–Newton (for the regions that need them only: `align.where_needed`).
+A frame whose quality stays low is LOST: the last good estimate is kept and
+the motion prediction is reset.  For motion "plane" the camera pose is
+accumulated, T̂ ← T(x) · T̂.  With a gradient baseline
 (`TrackConfig.method`) the registration is that method's, without recovery.
 """
 
