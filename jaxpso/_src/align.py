@@ -11,8 +11,11 @@ sub-pixel), and the better of the two is kept.  When that result's
 `quality` is low and the swarm and the start's refinement disagree, `align`
 searches once more with a larger swarm one level finer.  `register` is that pipeline
 on prepared inputs, shared with `track`; `TrackConfig.method` swaps it for a
-gradient baseline (`jaxpso._src.baselines`).  Everything after input checks
-is one compiled function per (shapes, config).
+gradient baseline (`jaxpso._src.baselines`).  `register` works on batches
+(`vmap` over the templates; the swarm and the retry run only for the
+elements that need them, `where_needed`), and `align` takes a batch of N
+alignments.  Everything after input checks is one compiled function per
+(shapes, config).
 """
 
 from __future__ import annotations
