@@ -612,11 +612,16 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
       C); all if None.
   """
   frame_axis = 0 if frame[0].ndim == 3 else None
-  if indices is not None:
-    if frame_axis == 0:
-      frame = take(frame, indices)
-    template, base, geometry, seed = take((template, base, geometry, seed), indices)
-  batched = (frame_axis, 0, 0, 0)
+  batched = (frame_axis, 0, 0, 0)  # the axes of (frame, template, base, geometry)
+
+  def subset(inputs, axes, indices):
+    """The `indices` elements of the batched ones of `inputs` (all if indices is None)."""
+    if indices is None:
+      return inputs
+    return tuple(x if axis is None else take(x, indices) for x, axis in zip(inputs, axes))
+
+  frame, template, base, geometry, seed = subset((frame, template, base, geometry, seed),
+                                                 batched + (0,), indices)
   ranges = jax.vmap(functools.partial(image_range, frame_shapes=frame_shapes, config=config),
                     in_axes=batched)(frame, template, base, geometry)
 
@@ -625,11 +630,9 @@ def register(frame: list, frame_shapes: list, template: Template, base, geometry
     def one(frame, template, base, geometry, image_range, *args):
       registrar = _Registrar(frame, frame_shapes, template, base, geometry, image_range, config)
       return method(registrar, *args)
-    inputs = (frame, template, base, geometry, ranges) + args
-    if indices is not None:
-      inputs = tuple(x if axis is None else take(x, indices)
-                     for x, axis in zip(inputs, batched + (0,) * (1 + len(args))))
-    return jax.vmap(one, in_axes=batched + (0,) * (1 + len(args)))(*inputs)
+    axes = batched + (0,) * (1 + len(args))
+    return jax.vmap(one, in_axes=axes)(
+        *subset((frame, template, base, geometry, ranges) + args, axes, indices))
 
   if config.method != "pso":
     return mapped(lambda r: r.baseline(max_iterations))
@@ -748,6 +751,13 @@ def plane_geometry(camera, plane_normal, frame_shape, h0, shape, dof):
                                shape, dof)
 
 
+def plane_geometries(camera, plane_normal, frame_shape, starts, shape, dof):
+  """`plane_geometry` of each (3, 3) start in `starts` (R, 3, 3), stacked (leading R)."""
+  return jax.tree.map(lambda *leaves: jnp.stack(leaves), *[
+      plane_geometry(camera, plane_normal, frame_shape, np.asarray(h, np.float32), shape, dof)
+      for h in starts])
+
+
 def element_seeds(key, count: int) -> jax.Array:
   """(count, 2) uint32 swarm seeds of a batch from one key; element 0's is the key's own."""
   seed = pso._as_seed(key)
@@ -841,9 +851,7 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
   check_template_size(shape, config, "template")
   geometry = None
   if config.motion == "plane":
-    geometry = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[
-        plane_geometry(camera, plane_normal, image_shape, h.astype(np.float32), shape, config.dof)
-        for h in starts])
+    geometry = plane_geometries(camera, plane_normal, image_shape, starts, shape, config.dof)
   elif camera is not None or plane_normal is not None:
     raise ValueError("camera and plane_normal apply to motion 'plane' only;"
                      f" got TrackConfig.motion={config.motion!r}")
@@ -856,9 +864,7 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
                np.stack([x0, y0], axis=-1).astype(np.float32), element_seeds(key, len(starts)),
                geometry)
   mesh = sharding.batch_mesh(devices, len(starts))
-  arguments = sharding.split(sharding.pad(arguments, sharding.padded_size(len(starts), mesh)),
-                             mesh)
-  result = _align(*arguments, config=config)
+  result = _align(*sharding.split(arguments, mesh), config=config)
   if mesh is not None and not all(a.is_fully_addressable for a in jax.tree.leaves(result)):
     result = sharding.to_host(result)  # spread over several processes (jax.distributed)
   return jax.tree.map(lambda a: a[:len(starts)] if batched else a[0], result)

@@ -50,16 +50,10 @@ def batch_mesh(devices, size: int) -> Mesh | None:
   return Mesh(np.array(devices[:max(1, size)]), (AXIS,))
 
 
-def padded_size(size: int, mesh: Mesh | None) -> int:
-  """`size` rounded up to a multiple of the mesh's devices."""
-  count = 1 if mesh is None else mesh.size
-  return -(-size // count) * count
-
-
-def pad(tree, size: int):
-  """Pads every leaf's leading axis to `size` by repeating its last element (NumPy or JAX)."""
+def _pad(tree, multiple: int):
+  """Every leaf's leading axis padded to a multiple of `multiple` by repeating its last element."""
   def grow(a):
-    missing = size - a.shape[0]
+    missing = -a.shape[0] % multiple
     if missing == 0:
       return a
     return np.concatenate([np.asarray(a), np.repeat(np.asarray(a)[-1:], missing, axis=0)])
@@ -67,14 +61,15 @@ def pad(tree, size: int):
 
 
 def split(tree, mesh: Mesh | None):
-  """Lays every leaf's leading axis out over the mesh (JAX arrays on the default device without one).
+  """Lays every leaf's leading axis out over the mesh, padded first to a multiple of its devices.
 
-  NumPy leaves become JAX arrays either way: a compiled step fed NumPy first
-  and its own JAX outputs next would be cached twice.
+  Without a mesh the leaves become JAX arrays on the default device: a
+  compiled step fed NumPy first and its own JAX outputs next would be
+  cached twice.  The caller drops the padding from the results.
   """
   if mesh is None:
     return jax.tree.map(jnp.asarray, tree)
-  return jax.device_put(tree, NamedSharding(mesh, PartitionSpec(AXIS)))
+  return jax.device_put(_pad(tree, mesh.size), NamedSharding(mesh, PartitionSpec(AXIS)))
 
 
 def replicate(tree, mesh: Mesh | None):

@@ -268,12 +268,6 @@ def _to_common_grid(shape, common):
                   1.0])
 
 
-def _rect(shape) -> np.ndarray:
-  """(4, 2) float32 template corners of `shape` (`homography.rect_corners` on the host)."""
-  h, w = shape
-  return np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
-
-
 def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0, camera=None,
           plane_normal=None, sequences: bool = False, devices=None,
           progress: bool = False) -> TrackResult:
@@ -327,8 +321,10 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   first = next(iterator, None)
   if first is None:
     raise ValueError("frames must hold at least one frame, got none")
-  names = [f"frames[{r}][0]" for r in range(count)] if sequences else ["frames[0]"]
-  frame0 = [align.to_gray(f, name) for f, name in zip(first, names)]
+  def frame_name(r, index):
+    return f"frames[{r}][{index}]" if sequences else f"frames[{index}]"
+
+  frame0 = [align.to_gray(f, frame_name(r, 0)) for r, f in enumerate(first)]
   if any(f.shape != frame0[0].shape for f in frame0):
     raise ValueError(f"the sequences' frames must have one size, got {[f.shape for f in frame0]}")
   frame_shape = frame0[0].shape
@@ -343,8 +339,9 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   to_common = np.stack([_to_common_grid(shape, common) for _, shape in regions])
   # Common grid → frame 0, for every region at once (eager calls per region
   # cost more than tracking a frame of a 64-region batch).
+  rect = np.asarray(homography.rect_corners(common), np.float32)
   starts = np.asarray(homography.homography_from_corners(
-      _rect(common), np.stack([corners for corners, _ in regions]).astype(np.float32)), np.float64)
+      rect, np.stack([corners for corners, _ in regions]).astype(np.float32)), np.float64)
   starts = starts / starts[:, 2:, 2:]
   if sequences:
     templates = jnp.stack([sampling.warp_image(f, jnp.asarray(h, jnp.float32), common)[0]
@@ -357,9 +354,8 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
                      " track")
   geometry = None
   if config.motion == "plane":
-    geometry = jax.tree.map(lambda *leaves: jnp.stack(leaves), *[
-        align.plane_geometry(camera, plane_normal, frame_shape, jnp.asarray(h, jnp.float32),
-                             common, config.dof) for h in starts])
+    geometry = align.plane_geometries(camera, plane_normal, frame_shape, starts, common,
+                                      config.dof)
   elif camera is not None or plane_normal is not None:
     raise ValueError("camera and plane_normal apply to motion 'plane' only;"
                      f" got TrackConfig.motion={config.motion!r}")
@@ -368,16 +364,12 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   first_estimate = starts if geometry is None else np.broadcast_to(np.eye(4, dtype=np.float32),
                                                                    (count, 4, 4))
   mesh = sharding.batch_mesh(devices, count)
-  padded = sharding.padded_size(count, mesh)
-
-  def place(tree):  # padded, split over the devices
-    return sharding.split(sharding.pad(tree, padded), mesh)
-
-  prepared = _prepare(place(templates), config)
-  constants = _Constants(prepared, place(geometry), place(align.element_seeds(key, count)))
-  carry = place(_Carry(first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32),
+  prepared = _prepare(sharding.split(templates, mesh), config)
+  constants = _Constants(prepared, sharding.split(geometry, mesh),
+                         sharding.split(align.element_seeds(key, count), mesh))
+  carry = sharding.split(_Carry(first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32),
                                                        (count, size, size)),
-                       np.ones(count, np.int32)))
+                       np.ones(count, np.int32)), mesh)
 
   first_score = (np.zeros(count, np.float32) if config.similarity == "ssd"
                  else -sharding.to_host(prepared.self_loss)[:count])
@@ -388,14 +380,13 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
       num_evaluations=np.zeros(count, np.int32)).items()}]
   outputs = []
   for index, raw in enumerate(iterator, start=1):
-    images = [align.to_gray(f, f"frames[{r}][{index}]" if sequences else f"frames[{index}]")
-              for r, f in enumerate(raw)]
+    images = [align.to_gray(f, frame_name(r, index)) for r, f in enumerate(raw)]
     for r, image in enumerate(images):
       if image.shape != frame_shape:
-        where = f"frames[{r}][{index}]" if sequences else f"frames[{index}]"
-        raise ValueError(f"{where} has shape {image.shape}, frame 0 has {frame_shape}: all"
-                         " frames must have one size")
-    image = place(np.stack(images)) if sequences else sharding.replicate(images[0], mesh)
+        raise ValueError(f"{frame_name(r, index)} has shape {image.shape}, frame 0 has"
+                         f" {frame_shape}: all frames must have one size")
+    image = (sharding.split(np.stack(images), mesh) if sequences
+             else sharding.replicate(images[0], mesh))
     carry, out = _frame_step(carry, image, constants, config=config)
     outputs.append(out)
     if len(outputs) == _HOST_CHUNK:
@@ -411,7 +402,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   stacked = {k: np.concatenate([c[k][:count] for c in chunks], axis=1) for k in chunks[0]}
   own = stacked["homography"] @ to_common[:, None]  # own template pixels → frame
   own = own / own[..., 2:, 2:]
-  mapped = stacked["homography"] @ np.c_[_rect(common), np.ones(4, np.float32)].T  # (R, T, 3, 4)
+  mapped = stacked["homography"] @ np.c_[rect, np.ones(4, np.float32)].T  # (R, T, 3, 4)
   corners = np.swapaxes(mapped[..., :2, :] / mapped[..., 2:, :], -1, -2)
   result = TrackResult(
       homographies=own.astype(np.float32), corners=corners,
