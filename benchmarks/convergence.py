@@ -121,7 +121,8 @@ def run_ecc(image, template, start, iterations: int = ECC_ITERATIONS):
 
 
 def budget_config(config: jaxpso.TrackConfig, budget: int) -> jaxpso.TrackConfig:
-  """`config` capped at `budget` similarity evaluations (module docstring)."""
+  """`config` capped at `budget` similarity evaluations (module docstring), levels resolved."""
+  config = config.for_template((SIZE, SIZE))
   if config.method == "pso":
     refinements = config.refine_steps * (2 + config.levels) + 2
     iterations = (budget - refinements) // config.swarm_size - 1

@@ -69,7 +69,8 @@ def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
   group.add_argument("--search-radius", type=float, dest="search_radius",
                      help=f"searched box half-width in px (default {_default('search_radius')})")
   group.add_argument("--levels", type=int,
-                     help=f"pyramid levels (default {_default('levels')})")
+                     help="pyramid levels (default: by the template's size, at most"
+                     f" {align.AUTO_LEVELS})")
   group.add_argument("--refine-steps", type=int, dest="refine_steps",
                      help=f"Gauss–Newton steps per level (default {_default('refine_steps')})")
   group.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -248,6 +249,18 @@ def _parser() -> argparse.ArgumentParser:
   return parser
 
 
+def _attach_roi(argv: list[str]) -> list[str]:
+  """`--roi VALUE` written as `--roi=VALUE`: argparse takes a value such as
+  "-5,10,40,40" (a region starting left of the frame) for an option."""
+  out, rest = [], list(argv)
+  while rest:
+    arg = rest.pop(0)
+    if arg == "--roi" and rest and rest[0].startswith("-"):
+      arg = f"--roi={rest.pop(0)}"
+    out.append(arg)
+  return out
+
+
 def main(argv=None) -> int:
   """Entry point of the `jaxpso` console script; returns the exit status.
 
@@ -260,7 +273,7 @@ def main(argv=None) -> int:
   os.environ.setdefault("OPENCV_FFMPEG_LOGLEVEL", "-8")
   parser = _parser()
   try:
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_attach_roi(sys.argv[1:] if argv is None else argv))
     if args.version:
       from jaxpso import __version__
       print(__version__)

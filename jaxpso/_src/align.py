@@ -60,6 +60,15 @@ class AlignStatus(enum.IntEnum):
   NO_VALID_WARP = 1
 
 
+# `TrackConfig.levels=None`: the coarsest level keeps the template's shorter
+# side at least COARSEST_PX pixels, with at most AUTO_LEVELS levels.
+COARSEST_PX, AUTO_LEVELS = 12, 4
+
+
+# `TrackConfig.lost_quality=None`: the quality below which a frame is lost.
+LOST_QUALITY = {"mi": 0.65, "ncc": 0.8, "ssd": 0.5}
+
+
 @dataclasses.dataclass(frozen=True)
 class TrackConfig:
   """Static settings of `align` and `track`; a change recompiles.
@@ -82,7 +91,14 @@ class TrackConfig:
     topology: PSO topology (`jaxpso.pso.TOPOLOGIES`).
     search_radius: half-width, in full-resolution pixels of corner motion, of
       the box searched in every motion parameter around the start.
-    levels: pyramid levels; the swarm searches the coarsest.
+    levels: pyramid levels; the swarm searches the coarsest.  None (the
+      default): as many as keep the template's shorter side at least
+      `COARSEST_PX` pixels on the coarsest level, at most `AUTO_LEVELS`
+      (`for_template`): 4 for a 100×100 template, 3 for 48×48.  With 4
+      levels a 48×48 template's coarsest level is 6×6, and on a clip
+      translating 5 px a frame 4 of its 12 fully visible frames came out
+      10–14 px off (quality 0.41–0.51); with 3, none
+      (tests/test_track.py::test_small_templates_get_fewer_levels).
     refine_steps: Gauss–Newton (Levenberg–Marquardt) steps per pyramid level
       after the swarm (0 disables the refinement).
     pixels: fraction of the full-resolution template's pixels the
@@ -101,7 +117,15 @@ class TrackConfig:
       "homography" and, for "plane", let the pose drift along the
       translation/rotation ambiguity (benchmarks/tracking.py).
     lost_quality: `track` declares a frame lost when its `quality` stays
-      below this after the recovery search.
+      below this after the recovery search (`lost_threshold`).  None (the
+      default): `LOST_QUALITY` of the similarity, above the wrong matches
+      measured and below every correct frame.  Correct frames of three
+      60-frame synthetic sequences (jumps, gain drift, noise up to 0.03,
+      blur, camera and brick textures) scored at least 0.83 (MI), 0.975
+      (NCC) and 0.79 (SSD); wrong ones, reported TRACKED under the former
+      single threshold 0.5: NCC 0.69–0.74 (a brick texture locked one
+      period off after a jump, a target gone out of the frame), MI 0.50–0.62
+      (chance matches of low-texture regions).
     retry_quality: `align` runs a second swarm (another seed,
       `recovery_scale` × the particles and the iterations, same box, one
       pyramid level finer) when the quality of its first result is below
@@ -132,13 +156,13 @@ class TrackConfig:
   variant: str = "constriction"
   topology: str = "von_neumann"
   search_radius: float = 32.0
-  levels: int = 4
+  levels: int | None = None
   refine_steps: int = 10
   pixels: float = 0.25
   accept_quality: float | None = 0.95
   min_valid: float = 0.5
   predict: bool = False
-  lost_quality: float = 0.5
+  lost_quality: float | None = None
   retry_quality: float = 0.95
   recovery_scale: int = 3
 
@@ -152,8 +176,10 @@ class TrackConfig:
     baselines.check_supported(self.method, self.motion, self.similarity)
     if self.dof not in DOFS or isinstance(self.dof, bool):
       raise ValueError(f"TrackConfig.dof must be one of {DOFS}, got {self.dof!r}")
-    for name in ("levels", "swarm_size", "max_iterations", "recovery_scale"):
+    for name in ("swarm_size", "max_iterations", "recovery_scale"):
       checks.check_int(getattr(self, name), f"TrackConfig.{name}", 1)
+    if self.levels is not None:
+      checks.check_int(self.levels, "TrackConfig.levels", 1)
     checks.check_int(self.bins, "TrackConfig.bins", 4)  # the B-spline kernel spans 4 bins
     checks.check_int(self.refine_steps, "TrackConfig.refine_steps", 0)
     if not 0 < checks.check_real(self.search_radius, "TrackConfig.search_radius") < math.inf:
@@ -171,11 +197,29 @@ class TrackConfig:
       raise TypeError(f"TrackConfig.predict must be a bool, got {self.predict!r}")
     self.pso_config()  # validates the PSO settings
 
+  @property
+  def lost_threshold(self) -> float:
+    """`lost_quality`, or the similarity's `LOST_QUALITY` when it is None."""
+    return LOST_QUALITY[self.similarity] if self.lost_quality is None else self.lost_quality
+
+  def for_template(self, shape) -> "TrackConfig":
+    """This config with `levels` chosen for a template of `shape` (h, w) when it is None."""
+    return self if self.levels is not None else _with_levels(self, tuple(shape))
+
   def pso_config(self) -> pso.PSOConfig:
     """The swarm's settings (batched loss over the whole swarm)."""
     return pso.PSOConfig(swarm_size=self.swarm_size, variant=self.variant,
                          topology=self.topology, max_iterations=self.max_iterations,
                          patience=self.patience, batched=True)
+
+
+@functools.lru_cache(maxsize=64)
+def _with_levels(config: TrackConfig, shape: tuple) -> TrackConfig:
+  """`TrackConfig.for_template`, cached (replace re-validates the config: 0.1 ms per call)."""
+  levels = 1
+  while levels < AUTO_LEVELS and min(shape) / 2 ** levels >= COARSEST_PX:
+    levels += 1
+  return dataclasses.replace(config, levels=levels)
 
 
 class AlignResult(NamedTuple):
@@ -716,6 +760,20 @@ def normalized(h) -> jax.Array:
   return (h / h[2, 2]).at[2, 2].set(1.0)
 
 
+# A template whose intensity standard deviation (intensities in [0, 1]) is
+# below this is textureless: 2.5 grey levels of 8-bit video, what
+# quantisation and sensor noise alone give a flat surface.  Such templates
+# (std 0.008) had passed a 1e-3 threshold and then drifted while reported tracked.
+MIN_TEXTURE = 0.01
+
+
+def check_texture(spreads, describe: Callable[[int], str]) -> None:
+  """ValueError naming `describe(i)` for the first template whose std in `spreads` (N,) is too low."""
+  for i in np.flatnonzero(~(np.asarray(spreads) >= MIN_TEXTURE)):
+    raise ValueError(f"{describe(int(i))} is textureless (intensity std {spreads[i]:.2g}"
+                     f" < {MIN_TEXTURE}): nothing to align")
+
+
 def check_template_size(shape, config: TrackConfig, name: str) -> None:
   """ValueError naming `name` when the coarsest pyramid level is under 4 px."""
   if min(shape) / 2 ** (config.levels - 1) < 4:
@@ -758,11 +816,14 @@ def plane_geometries(camera, plane_normal, frame_shape, starts, shape, dof):
       for h in starts])
 
 
-def element_seeds(key, count: int) -> jax.Array:
-  """(count, 2) uint32 swarm seeds of a batch from one key; element 0's is the key's own."""
-  seed = pso._as_seed(key)
-  offsets = jnp.arange(count, dtype=jnp.uint32) * jnp.uint32(0x9E3779B9)
-  return jnp.stack([jnp.broadcast_to(seed[0], (count,)), seed[1] + offsets], axis=-1)
+def element_seeds(key, count: int) -> np.ndarray:
+  """(count, 2) uint32 swarm seeds of a batch from one key; element 0's is the key's own.
+
+  On the host: as device operations these cost 1 ms per `align` call.
+  """
+  seed = np.asarray(pso._as_seed(key))
+  offsets = np.arange(count, dtype=np.uint32) * np.uint32(0x9E3779B9)  # wraps modulo 2³²
+  return np.stack([np.full(count, seed[0]), seed[1] + offsets], axis=-1)
 
 
 def _check_start(start, template_shape, name: str) -> np.ndarray:
@@ -841,12 +902,9 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
     if any(x.shape != items[0].shape for x in items):
       raise ValueError(f"every {name} of a batch must have one shape, got"
                        f" {sorted({x.shape for x in items})}")
-  for i, t in enumerate(templates):
-    spread = float(np.std(t))
-    if spread < 1e-3:
-      raise ValueError(f"{named('template', i)} is textureless (intensity std {spread:.2g}"
-                       " < 1e-3): nothing to align")
+  check_texture(np.std(np.stack(templates), axis=(1, 2)), lambda i: named("template", i))
   shape, image_shape = templates[0].shape, images[0].shape
+  config = config.for_template(shape)
   starts = [_check_start(h, shape, named("init_homography", i)) for i, h in enumerate(starts)]
   check_template_size(shape, config, "template")
   geometry = None
@@ -864,10 +922,16 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
                np.stack([x0, y0], axis=-1).astype(np.float32), element_seeds(key, len(starts)),
                geometry)
   mesh = sharding.batch_mesh(devices, len(starts))
-  result = _align(*sharding.split(arguments, mesh), config=config)
+  result = _align(*(arguments if mesh is None else sharding.split(arguments, mesh)), config=config)
   if mesh is not None and not all(a.is_fully_addressable for a in jax.tree.leaves(result)):
     result = sharding.to_host(result)  # spread over several processes (jax.distributed)
-  return jax.tree.map(lambda a: a[:len(starts)] if batched else a[0], result)
+  if not batched:
+    return _first(result)
+  return jax.tree.map(lambda a: a[:len(starts)], result) if len(result.score) > len(starts) else result
+
+
+# Element 0 of every field as one call (indexing each field eagerly cost 2 ms per `align`).
+_first = jax.jit(lambda tree: jax.tree.map(lambda a: a[0], tree))
 
 
 # The window `align` works in is a multiple of this many pixels each way, so

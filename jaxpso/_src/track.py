@@ -52,7 +52,7 @@ class TrackResult(NamedTuple):
     corners: (T, 4, 2) the template's corners (TL, TR, BR, BL) in each frame.
     scores: (T,) similarity at the estimate (an error for "ssd").
     quality: (T,) `align.quality` of the estimate: about 1 for a match, lower
-      the worse (1 at frame 0; `TrackConfig.lost_quality` is the threshold).
+      the worse (1 at frame 0; `TrackConfig.lost_threshold` is the threshold).
     status: (T,) int32 `TrackStatus`.
     poses: (T, 4, 4) frame-0 → frame camera poses for motion "plane", else None.
     num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0).
@@ -133,7 +133,7 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
                  max_iterations=config.max_iterations,
                  accept=(None if config.accept_quality is None
                          else lambda found: found.quality >= config.accept_quality))
-  weak = ~(found.quality >= config.lost_quality)
+  weak = ~(found.quality >= config.lost_threshold)
 
   def recover(indices):
     # What accumulates while the target is lost is mostly translation, and a
@@ -150,7 +150,7 @@ def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.Tr
   if config.method == "pso":
     found, base = align.where_needed(weak, recover, (found, start))
   quality = found.quality
-  lost = ~(quality >= config.lost_quality) | ~jnp.all(jnp.isfinite(found.u), axis=-1)
+  lost = ~(quality >= config.lost_threshold) | ~jnp.all(jnp.isfinite(found.u), axis=-1)
   status = jnp.where(lost, TrackStatus.LOST,
                      jnp.where(weak, TrackStatus.RECOVERED, TrackStatus.TRACKED)).astype(jnp.int32)
 
@@ -333,9 +333,10 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
     return f"roi[{r}]" if batched else "roi"
 
   regions = [_template_geometry(roi, frame_shape, name(r)) for r, roi in enumerate(rois)]
+  common = tuple(max(shape[i] for _, shape in regions) for i in (0, 1))
+  config = config.for_template(common)  # the templates are sampled on the common grid
   for r, (_, shape) in enumerate(regions):
     align.check_template_size(shape, config, name(r))
-  common = tuple(max(shape[i] for _, shape in regions) for i in (0, 1))
   to_common = np.stack([_to_common_grid(shape, common) for _, shape in regions])
   # Common grid → frame 0, for every region at once (eager calls per region
   # cost more than tracking a frame of a 64-region batch).
@@ -348,10 +349,8 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
                            for f, h in zip(frame0, starts)])
   else:
     templates = sampling.warp_image(frame0[0], jnp.asarray(starts, jnp.float32), common)[0]
-  spread = np.asarray(jnp.std(templates, axis=(1, 2)))
-  for r in np.flatnonzero(spread < 1e-3):
-    raise ValueError(f"{name(r)} {rois[r]!r} is textureless (intensity std < 1e-3): nothing to"
-                     " track")
+  align.check_texture(np.asarray(jnp.std(templates, axis=(1, 2))),
+                      lambda r: f"{name(r)} {rois[r]!r}")
   geometry = None
   if config.motion == "plane":
     geometry = align.plane_geometries(camera, plane_normal, frame_shape, starts, common,
