@@ -250,12 +250,14 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _attach_roi(argv: list[str]) -> list[str]:
-  """`--roi VALUE` written as `--roi=VALUE`: argparse takes a value such as
-  "-5,10,40,40" (a region starting left of the frame) for an option."""
+  """`--roi VALUE` written as `--roi=VALUE` when VALUE starts with a minus and a
+  digit: argparse takes a value such as "-5,10,40,40" (a region starting left
+  of the frame) for an option.  A following option (`--roi --out DIR`) is left
+  alone, so that argparse reports the missing value."""
   out, rest = [], list(argv)
   while rest:
     arg = rest.pop(0)
-    if arg == "--roi" and rest and rest[0].startswith("-"):
+    if arg == "--roi" and rest and rest[0][:1] == "-" and rest[0][1:2].isdigit():
       arg = f"--roi={rest.pop(0)}"
     out.append(arg)
   return out

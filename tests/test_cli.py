@@ -62,6 +62,7 @@ def test_track_a_video_written_from_a_synthetic_sequence(tmp_path, capsys):
     (["track", "VIDEO", "--roi", "1,2,0,5", "--out", "OUT"], "--roi"),
     (["track", "VIDEO", "--roi", "300,200,100,100", "--out", "OUT", *_FAST], "roi"),
     (["track", "VIDEO", "--roi", "-5,2,20,20", "--out", "OUT", *_FAST], "roi"),
+    (["track", "VIDEO", "--roi", "--out", "OUT"], "--roi: expected one argument"),
     (["track", "VIDEO", "--out", "OUT"], "--roi"),
     (["track", "MISSING", "--roi", "1,2,3,4", "--out", "OUT"], "missing.avi"),
     (["demo", "--similarity", "foo"], "--similarity"),
