@@ -583,9 +583,16 @@ def take(tree, indices):
   return jax.tree.map(lambda a: a[indices], tree)
 
 
-# A batch of R runs its costly searches on at most ceil(R / _SHARE) elements
-# at a time (`where_needed`).
-_SHARE = 8
+def _share() -> int:
+  """A batch of R runs its costly searches on ceil(R / _share()) elements at a time (`where_needed`).
+
+  32 on a CPU, where the work is compute-bound and an idle slot of a round
+  costs as much as a busy one: at R = 64 (about 4.5 regions needing the
+  swarm per frame) a region-frame took 1.7 ms with 32, 2.3 ms with 8
+  (benchmarks/batch.py's regions, 20 frames).  8 on accelerators, whose
+  slots run in parallel (not measured on a GPU).
+  """
+  return 32 if jax.default_backend() == "cpu" else 8
 
 
 def where_needed(mask, compute: Callable, otherwise):
@@ -593,13 +600,13 @@ def where_needed(mask, compute: Callable, otherwise):
 
   `compute(indices)` gets (C,) element indices and returns those elements'
   results (leading C).  Only the elements that need it are computed, C =
-  ceil(R / _SHARE) at a time in a `lax.while_loop` of as many rounds as
+  ceil(R / _share()) at a time in a `lax.while_loop` of as many rounds as
   needed (none when no element does).  Under `vmap` a per-element
   `lax.cond` would run the costly branch (the swarm, the retry, the recovery
   search) for every element on every frame.
   """
   size = mask.shape[0]
-  capacity = -(-size // _SHARE)
+  capacity = -(-size // _share())
   padded = -(-size // capacity) * capacity
   needed = jnp.sum(mask)
   # The needing elements first; every other slot is the out-of-range index `size`.
