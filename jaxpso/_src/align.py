@@ -589,8 +589,9 @@ def _share() -> int:
   32 on a CPU, where the work is compute-bound and an idle slot of a round
   costs as much as a busy one: at R = 64 (about 4.5 regions needing the
   swarm per frame) a region-frame took 1.7 ms with 32, 2.3 ms with 8
-  (benchmarks/batch.py's regions, 20 frames).  8 on accelerators, whose
-  slots run in parallel (not measured on a GPU).
+  (benchmarks/batch.py's regions, 20 frames, with an unrolled Cholesky
+  solve since reverted).  8 on accelerators, whose slots run in parallel
+  (not measured on a GPU).
   """
   return 32 if jax.default_backend() == "cpu" else 8
 
