@@ -88,8 +88,12 @@ def _checks():
   templates = np.stack([image[y:y + 32, x:x + 32]] * 3)
   one = jaxpso.align(np.stack([image] * 3), templates, starts, config=config, devices=devices[:1])
   two = jaxpso.align(np.stack([image] * 3), templates, starts, config=config, devices=devices[:2])
+  # Equal up to float rounding: XLA's own dot code (YNNPACK fusions are off,
+  # `compile_options`) sums a batch of 3 and one of 2 per device in another
+  # order (measured: the SSD scores ~1e-9 differ by 1 ulp).
   for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(two)):
-    np.testing.assert_array_equal(a, b)
+    np.testing.assert_allclose(a, b, rtol=1e-6, atol=1e-6)
+  np.testing.assert_array_equal(one.status, two.status)
   print("align", flush=True)
 
 

@@ -32,6 +32,7 @@ import numpy as np
 
 from jaxpso._src import baselines
 from jaxpso._src import checks
+from jaxpso._src import compile_options
 from jaxpso._src import homography
 from jaxpso._src import motion
 from jaxpso._src import plane
@@ -729,7 +730,7 @@ def better_of(first: Registration, second: Registration) -> Registration:
                        num_evaluations=first.num_evaluations + second.num_evaluations)
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
+@functools.partial(compile_options.jit, static_argnames=("config",))
 def _align(images, templates, init_homographies, offsets, seeds, geometry, *,
            config: TrackConfig) -> AlignResult:
   """`align` of a batch: (N, H, W) windows of the images whose top-left pixels are at `offsets` (N, 2).

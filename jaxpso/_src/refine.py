@@ -28,7 +28,6 @@ from typing import Callable
 import jax
 import jax.numpy as jnp
 
-from jaxpso._src import homography
 from jaxpso._src import sampling
 
 # Damping of the first step, relative to the diagonal of JᵀJ; multiplied by
@@ -55,9 +54,9 @@ def adapted_template(template, bin_weights, patch, mask, similarity: str):
   mean_i = jnp.sum(m * patch) / count
   if similarity == "mi":
     # A pseudo-count of one pixel at the mean intensity keeps empty bins finite.
-    weights = bin_weights * m[..., None]
-    per_bin = (jnp.einsum("hwk,hw->k", weights, patch) + mean_i) / (
-        jnp.sum(weights, axis=(0, 1)) + 1.0)
+    bins = bin_weights.shape[-1]
+    sums = jnp.stack([patch * m, m]).reshape(2, -1) @ bin_weights.reshape(-1, bins)
+    per_bin = (sums[0] + mean_i) / (sums[1] + 1.0)
     return bin_weights @ per_bin
   if similarity == "ncc":
     mean_t = jnp.sum(m * template) / count
@@ -107,20 +106,23 @@ def gauss_newton(u0, quads, frame_shape, grid, template, bin_weights, loss_of: C
   def linearise(u):
     """Loss at u, and the normal equations (JᵀJ, Jᵀr) of the adapted SSD."""
     h = to_level_homography(u)
-    value, gx, gy, valid = sampling.sample_with_gradient(quads, frame_shape, h, grid)
+    value, gx, gy, valid, (x, y, w) = sampling.sample_with_gradient(
+        quads, frame_shape, h, grid, projection=True)
     target = adapted_template(template, bin_weights, value, valid, similarity)
-    # J = ∂I(W(p))/∂h · ∂h/∂u: the first in closed form per pixel (h·w, 9),
-    # the second (9, D) by forward mode through the motion model.
-    mapped, w = homography.apply_to_points(h, flat)
-    m = valid.reshape(-1).astype(value.dtype)
-    inv_w = m / jnp.where(valid.reshape(-1), w, 1.0)
-    gx, gy = gx.reshape(-1) * inv_w, gy.reshape(-1) * inv_w
-    across = -(gx * mapped[:, 0] + gy * mapped[:, 1])
-    by_entry = jnp.concatenate([gx[:, None] * points, gy[:, None] * points,
-                                across[:, None] * points], axis=1)
-    jac = by_entry @ jax.jacfwd(to_level_homography)(u).reshape(9, -1)
-    residual = (value - target).reshape(-1) * m
-    return loss_of(h, value, valid), jac.T @ jac, jac.T @ residual
+    # J = B·M: B = ∂I(W(p))/∂h per pixel (h·w, 9) in closed form (the
+    # gradients are 0 where invalid), M = ∂h/∂u (9, D) by forward mode
+    # through the motion model.  JᵀJ = Mᵀ(BᵀB)M and Jᵀr = Mᵀ(Bᵀr) come from
+    # one 10×10 Gram of [B r]: forming the (h·w, D) J and multiplying it
+    # twice took 14 of the 82 ms of a 64-region frame step (profiled).
+    gx, gy = (gx / w).reshape(-1), (gy / w).reshape(-1)
+    across = -(gx * x.reshape(-1) + gy * y.reshape(-1))
+    residual = (value - target).reshape(-1) * valid.reshape(-1).astype(value.dtype)
+    stacked = jnp.concatenate([gx[:, None] * points, gy[:, None] * points,
+                               across[:, None] * points, residual[:, None]], axis=1)
+    gram = stacked.T @ stacked
+    by_motion = jax.jacfwd(to_level_homography)(u).reshape(9, -1)
+    return (loss_of(h, value, valid), by_motion.T @ gram[:9, :9] @ by_motion,
+            by_motion.T @ gram[:9, 9])
 
   d = u0.shape[0]
 

@@ -38,9 +38,9 @@ def template_grid(shape) -> jax.Array:
 def _project(homographies, x, y, frame_shape):
   """Maps coordinates `x, y` through `homographies` (…, 3, 3), broadcasting.
 
-  Returns projected (x', y') set to 0 where invalid and the validity mask:
-  w > 0, finite, and inside [0, W-1] × [0, H-1] so that all four bilinear
-  neighbours exist.
+  Returns projected (x', y') set to 0 where invalid, the homogeneous w (1
+  where w is not positive) and the validity mask: w > 0, finite, and inside
+  [0, W-1] × [0, H-1] so that all four bilinear neighbours exist.
   """
   height, width = frame_shape
   h = homographies[..., None, None, :, :]
@@ -52,7 +52,7 @@ def _project(homographies, x, y, frame_shape):
   px = num_x / den
   py = num_y / den
   valid = (ok & (px >= 0) & (px <= width - 1) & (py >= 0) & (py <= height - 1))
-  return jnp.where(valid, px, 0.0), jnp.where(valid, py, 0.0), valid
+  return jnp.where(valid, px, 0.0), jnp.where(valid, py, 0.0), den, valid
 
 
 def warp_points(homographies, points, frame_shape):
@@ -118,11 +118,11 @@ def sample_points(quads, frame_shape, homographies, grid):
   Returns:
     (patches, mask), each (..., h, w); patches are 0 where invalid.
   """
-  x, y, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
+  x, y, _, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
   return jnp.where(valid, _interpolate(quads, frame_shape, x, y), 0.0), valid
 
 
-def sample_with_gradient(quads, frame_shape, homographies, grid):
+def sample_with_gradient(quads, frame_shape, homographies, grid, *, projection: bool = False):
   """`sample_points` plus the central-difference image gradient at the samples.
 
   The gradient image's bilinear interpolation at p equals the central
@@ -133,12 +133,16 @@ def sample_with_gradient(quads, frame_shape, homographies, grid):
 
   Args:
     grid: (h, w, 2) template points, e.g. `template_grid(shape)`.
+    projection: also return where the points land, as a fifth item
+      (x', y', w), each (..., h, w): the frame coordinates (0 where invalid)
+      and the homogeneous w (1 where w <= 0).  Gauss–Newton's Jacobian
+      needs them, and projecting once more would cost a second pass.
 
   Returns:
     (patches, grad_x, grad_y, mask), each (..., h, w); zeros where invalid.
   """
   height, width = frame_shape
-  x, y, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
+  x, y, w, valid = _project(homographies, grid[..., 0], grid[..., 1], frame_shape)
 
   def at(px, py):
     return _interpolate(quads, frame_shape, px, py)
@@ -148,7 +152,8 @@ def sample_with_gradient(quads, frame_shape, homographies, grid):
   grad_x = (at(x + 1.0, y) - at(x - 1.0, y)) / step_x
   grad_y = (at(x, y + 1.0) - at(x, y - 1.0)) / step_y
   zero = lambda v: jnp.where(valid, v, 0.0)
-  return zero(at(x, y)), zero(grad_x), zero(grad_y), valid
+  sampled = zero(at(x, y)), zero(grad_x), zero(grad_y), valid
+  return sampled + ((x, y, w),) if projection else sampled
 
 
 def warp_image(image, homographies, shape):

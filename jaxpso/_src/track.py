@@ -29,6 +29,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxpso._src import align
+from jaxpso._src import compile_options
 from jaxpso._src import homography
 from jaxpso._src import motion
 from jaxpso._src import plane
@@ -91,13 +92,13 @@ def _frame_seed(seed, frame):
   return jnp.stack([seed[0], pso._mix(seed[1] ^ pso._mix(frame.astype(jnp.uint32)))])
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
+@functools.partial(compile_options.jit, static_argnames=("config",))
 def _prepare(templates, config: align.TrackConfig) -> align.Template:
   """(R, h, w) templates → their `align.Template`s stacked (one compiled program)."""
   return jax.vmap(functools.partial(align.prepare_template, config=config))(templates)
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
+@functools.partial(compile_options.jit, static_argnames=("config",))
 def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.TrackConfig):
   """One frame of R regions: (carry, (H, W) image shared or (R, H, W) one per region) →
   (carry, per-frame outputs, each with the leading R)."""
