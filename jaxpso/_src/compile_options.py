@@ -7,11 +7,13 @@ Gauss–Newton's Gram matrices), and there the YNNPACK fusions ran several
 times slower than XLA's own code: one (64, 16, 2304) × (64, 2304, 16)
 histogram product inside the 64-region frame step took 18 ms per call in a
 profile, against 1.5 ms for the same product compiled alone.  With them
-off, a 64-region frame step took 1.06–1.11 ms per region instead of 1.41
-(benchmarks/batch.py's regions, 20 frames).  The option is set per compiled
+off (benchmarks/batch.py's regions, 40 frames, one run): one region 2.71 →
+2.04 ms per frame, 64 regions 1.54 → 1.42 ms per region-frame; no change
+measured for `align` (30 alignments at σ = 8 px: medians 1.7–2.5 ms either
+way).  The option is set per compiled
 program (`jax.jit(compiler_options=...)`), so a user's other programs keep
-XLA's defaults; GPU backends ignore it, and a jaxlib that does not know it
-compiles without it.
+XLA's defaults.  It is an XLA:CPU option (not tried on a GPU backend; a
+backend or jaxlib that rejects it compiles without it, `options`).
 """
 
 from __future__ import annotations
