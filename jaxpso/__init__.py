@@ -7,6 +7,7 @@ swarm + Gauss–Newton) with `TrackConfig`, and the modules `jaxpso.warp`
 (the gradient methods, `TrackConfig(method=...)`),
 `jaxpso.pso` (the swarm optimizer), `jaxpso.synthetic` (test sequences) and
 `jaxpso.io` (videos, overlays, results files).
+Compiled programs are kept on disk across processes: `cache_dir`, `set_cache_dir`.
 Importing jaxpso does not import OpenCV or matplotlib.
 """
 
@@ -15,6 +16,8 @@ from jaxpso._src.align import AlignStatus
 from jaxpso._src.align import TrackConfig
 from jaxpso._src.align import align
 from jaxpso._src.baselines import METHODS
+from jaxpso._src.programs import cache_dir
+from jaxpso._src.programs import set_cache_dir
 from jaxpso._src.track import TrackResult
 from jaxpso._src.track import TrackStatus
 from jaxpso._src.track import track
@@ -29,4 +32,5 @@ from jaxpso import warp
 __version__ = "0.1.0"
 
 __all__ = ("METHODS", "AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus",
-           "align", "baselines", "data", "io", "pso", "similarity", "synthetic", "track", "warp", "__version__")
+           "align", "baselines", "cache_dir", "data", "io", "pso", "set_cache_dir", "similarity",
+           "synthetic", "track", "warp", "__version__")

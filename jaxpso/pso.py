@@ -2,7 +2,9 @@
 
 `run(key, loss_fn, lower, upper, args, config=..., hparams=...)` minimises
 `loss_fn(x, args)` over a box; `trace` is the fixed-length `lax.scan` form
-with a per-iteration record; `init` and `step` are the pure pieces.
+with a per-iteration record; `init` and `step` are the pure pieces.  The
+termination settings of `PSOConfig` reach the loop as `PSOLimits` arrays, so
+changing them does not recompile `run`.
 """
 
 from jaxpso._src.pso import BOUNDARIES
@@ -11,6 +13,7 @@ from jaxpso._src.pso import TOPOLOGIES
 from jaxpso._src.pso import VARIANTS
 from jaxpso._src.pso import PSOConfig
 from jaxpso._src.pso import PSOHParams
+from jaxpso._src.pso import PSOLimits
 from jaxpso._src.pso import PSOResult
 from jaxpso._src.pso import PSOState
 from jaxpso._src.pso import PSOTrace
@@ -28,6 +31,7 @@ __all__ = (
     "VARIANTS",
     "PSOConfig",
     "PSOHParams",
+    "PSOLimits",
     "PSOResult",
     "PSOState",
     "PSOTrace",

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 
 from jaxpso._src import align
+from jaxpso._src import atlas
 from jaxpso._src import baselines
-from jaxpso._src import motion
-from jaxpso._src import sampling
+from jaxpso._src import register
+from jaxpso._src import template as templates
 from jaxpso._src.data import load_image
 
 SIZE = 64
@@ -49,36 +50,28 @@ def _corner_error(h, origin=ORIGIN):
   return float(np.sqrt(np.mean(np.sum((mapped - (SOURCE + origin)) ** 2, axis=1))))
 
 
-@jax.jit
 def _frame(image):
-  return align.prepare_frame(image, align.TrackConfig(levels=LEVELS))[0]
+  return atlas.build(np.asarray(image, np.float32), LEVELS)
 
 
-FRAME_SHAPES = [level.shape for level in
-                jax.eval_shape(lambda image: sampling.gaussian_pyramid(image, LEVELS), IMAGE)]
+def _register(frame, template, start, *, method, similarity):
+  """register.baseline on the whole image from `start` → (homography, start, loss, its, evals)."""
+  config = align.TrackConfig(method=method, similarity=similarity, levels=LEVELS,
+                             max_iterations=ITERATIONS.get(method, 30)).statics()
+  prepared = templates.prepare(np.asarray(template, np.float32), LEVELS, config.pixels)
+  pyramid = [level[0] for level in align.template_pyramids([template], LEVELS)]
+  bases = np.stack([start, start]).astype(np.float32)
+  return _registered(frame, prepared, pyramid, bases, config.knobs(), config=config)
 
 
-# Compilation dominates this file's runtime; XLA's LLVM optimisation level 0
-# compiles the registrations in about 60 % of the time (they run a little slower).
-@functools.partial(jax.jit, static_argnames=("method", "similarity"),
-                   compiler_options={"xla_backend_optimization_level": 0})
-def _register(frame, template, base, *, method, similarity):
-  """baselines.register as align.register sets it up → (homography, start, loss, its, evals)."""
-  config = align.TrackConfig(similarity=similarity, levels=LEVELS)
-  prepared = align.prepare_template(template, config)
-  loss_of, _ = align._measure(config)
-  to_h = functools.partial(motion.to_homography, base=base, geometry=None, shape=template.shape,
-                           motion="homography", dof=6)
-
-  def loss_at(level, h, patches, mask):
-    loss = loss_of(prepared.reference(level), patches, mask)
-    return jnp.where(motion.admissible(h, prepared.pyramid[level].shape), loss, jnp.inf)
-
-  u, loss, iterations, evaluations = baselines.register(
-      method, frame, FRAME_SHAPES, prepared.pyramid, to_h, 8, loss_at, similarity=similarity,
-      levels=LEVELS, iterations=ITERATIONS.get(method, 30))
-  return (align.normalized(to_h(u)), align.normalized(to_h(jnp.zeros(8))), loss, iterations,
-          evaluations)
+@functools.partial(jax.jit, static_argnames=("config",))
+def _registered(frame, prepared, pyramid, bases, knobs, *, config):
+  context = register.context(frame, prepared, bases, None, jnp.zeros(2, jnp.uint32), knobs,
+                             config)
+  found = register.baseline(context, pyramid, knobs, config)
+  start = register.Problem(context, knobs, config).homography(jnp.zeros(8), 0)
+  return (found.homography, register.normalized(start), found.loss, found.num_iterations,
+          found.num_evaluations)
 
 
 def _check_counts(loss, iterations, evaluations):
@@ -160,11 +153,6 @@ def test_pyramid_levels_keep_templates_large_enough_for_the_method():
   assert baselines.pyramid_levels("fc", (100, 100), 2) == 2  # never more than asked
   assert baselines.pyramid_levels("fa", (30, 30), 4) == 1  # the full template always
   assert baselines.pyramid_levels("ecc", (400, 400), 4) == 1
-
-
-def test_packed_frame_unpacks_to_the_image_bitwise():
-  quads = sampling.pack_quads(IMAGE)
-  np.testing.assert_array_equal(baselines._unpack_quads(quads, IMAGE.shape), IMAGE)
 
 
 def test_check_supported_names_what_is_supported():

@@ -18,6 +18,13 @@ import jaxpso
 from jaxpso._src import align as align_module
 from jaxpso._src import track as track_module
 from jaxpso.data import load_image
+from jaxpso._src import programs
+from jaxpso._src import register
+
+
+def programs_made() -> int:
+  """Programs compiled or loaded from the cache so far (`programs.counts`)."""
+  return programs.counts()["compiled"] + programs.counts()["loaded"]
 
 CONFIG = jaxpso.TrackConfig(similarity="ssd", levels=1, swarm_size=16, max_iterations=15,
                             search_radius=8.0)
@@ -100,9 +107,9 @@ def test_a_repeated_batch_adds_no_compiled_program():
   x, y, w, h = sequence.roi
   rois = np.array([sequence.roi, (x + 6, y - 4, w, h)])
   jaxpso.track(sequence.frames[:3], rois, config=CONFIG, key=1)
-  size = track_module._frame_step._cache_size()
+  size = programs_made()
   jaxpso.track(sequence.frames[2:], rois - np.array([2, 2, 0, 0]), config=CONFIG, key=2)
-  assert track_module._frame_step._cache_size() == size
+  assert programs_made() == size
 
 
 def test_costly_searches_run_for_the_batch_only_when_a_region_needs_them():
@@ -134,7 +141,7 @@ def test_where_needed_computes_exactly_the_needing_elements(size):
   def run(mask):
     def compute(indices):
       return (values[indices] + 100.0, jnp.ones_like(indices))
-    return align_module.where_needed(mask, compute, (values, jnp.zeros(size, jnp.int32)))
+    return register.where_needed(mask, compute, (values, jnp.zeros(size, jnp.int32)))
 
   for mask in [np.zeros(size, bool), np.ones(size, bool),
                np.random.default_rng(size).uniform(size=size) < 0.3]:
@@ -170,12 +177,38 @@ def test_a_batch_of_alignments_equals_them_one_by_one():
   for i in range(3):
     mapped = cv2.perspectiveTransform(SOURCE[None], np.float64(batch.homography[i]))[0]
     assert np.abs(mapped - truths[i]).max() < 0.5, i
-  compiled = align_module._align._cache_size()
+  compiled = programs_made()
   jaxpso.align(np.stack([IMAGE] * 3), templates[::-1], starts[::-1], config=ALIGN, key=5)
-  assert align_module._align._cache_size() == compiled
+  assert programs_made() == compiled
 
 
 # --- bad input --------------------------------------------------------------------------------
+
+
+def test_an_align_batch_mixes_image_and_template_sizes_in_one_program():
+  # Templates of 40×56 and 64×64 px in images of two sizes: one program, and
+  # every element registers as it does alone.
+  rng = np.random.default_rng(7)
+  images = [IMAGE, np.ascontiguousarray(IMAGE[:300, :420])]
+  boxes = [(120, 90, 56, 40), (200, 150, 64, 64)]
+  templates, starts, truths = [], [], []
+  for (x, y, w, h) in boxes:
+    source = np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
+    templates.append(IMAGE[y:y + h, x:x + w].copy())
+    truths.append(source + np.float32([x, y]))
+    corners = truths[-1] + rng.normal(0, 2.0, (4, 2)).astype(np.float32)
+    starts.append(cv2.getPerspectiveTransform(source, corners))
+  before = programs_made()
+  batch = jaxpso.align(images, templates, np.stack(starts), config=ALIGN, key=2)
+  assert programs_made() - before <= 1
+  for i, (image, template, start, truth) in enumerate(zip(images, templates, starts, truths)):
+    alone = jaxpso.align(image, template, start, config=ALIGN, key=2) if i == 0 else None
+    h, w = template.shape
+    source = np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
+    mapped = cv2.perspectiveTransform(source[None], np.float64(batch.homography[i]))[0]
+    assert np.abs(mapped - truth).max() < 0.5, i
+    if alone is not None:
+      np.testing.assert_allclose(batch.homography[i], alone.homography, atol=1e-4)
 
 
 @pytest.mark.parametrize("call, match", [
@@ -192,10 +225,10 @@ def test_a_batch_of_alignments_equals_them_one_by_one():
     (lambda s: jaxpso.track(s.frames, np.array([s.roi] * 2), devices="cpu"), "jax.Device"),
     (lambda s: jaxpso.align(np.stack([IMAGE] * 2), np.stack([IMAGE[:64, :64]] * 3),
                             np.stack([np.eye(3)] * 2)), "as many images, templates"),
-    (lambda s: jaxpso.align([IMAGE, IMAGE[:, :400]], np.stack([IMAGE[:64, :64]] * 2),
-                            np.stack([np.eye(3)] * 2)), "every image of a batch"),
     (lambda s: jaxpso.align(np.stack([IMAGE] * 2), [IMAGE[:64, :64], IMAGE[:64, :60]],
-                            np.stack([np.eye(3)] * 2)), "every template of a batch"),
+                            np.stack([np.eye(3)] * 2), config=jaxpso.TrackConfig(method="ic",
+                                                                               similarity="ssd")),
+     "every template of a batch aligned by 'ic'"),
     (lambda s: jaxpso.align(np.stack([IMAGE] * 2), np.stack([IMAGE[:64, :64]] * 2),
                             np.stack([np.eye(3), np.zeros((3, 3))])),
      r"init_homography\[1\] must be finite and invertible"),

@@ -25,6 +25,8 @@ import pytest
 
 from jaxpso import pso
 from jaxpso._src.pso import _neighbourhood_best
+from jaxpso._src.pso import _run
+from jaxpso._src.pso import _run_impl
 from jaxpso._src.pso import _uniform
 from jaxpso._src.pso import _uniform_pair
 
@@ -245,7 +247,7 @@ def test_neighbourhood_best_matches_the_documented_topology(topology, n):
       best_loss[rng.choice(n, size=max(1, n // 4), replace=False)] = np.inf
     k = config.informants if topology == "random" else 0
     informants = rng.integers(0, n, size=(n, k))
-    out = _neighbourhood_best(_probe_state(best_loss, informants, 0), config)
+    out = _neighbourhood_best(_probe_state(best_loss, informants, 0), config.limits(), config)
     assert out.shape == (2, n)
     _check_choice(out, best_loss, _reference_neighbourhoods(topology, n, 0, config, informants))
 
@@ -257,8 +259,8 @@ def test_dynamic_neighbourhood_radius_grows_with_the_iteration(n, max_iterations
   best_loss = np.random.default_rng(n).random(n).astype(np.float32)
   iterations = np.arange(max_iterations + 1)
   state = _probe_state(best_loss, np.zeros((n, 0)), 0)
-  outs = jax.jit(jax.vmap(lambda t: _neighbourhood_best(state._replace(iteration=t), config)))(
-      jnp.asarray(iterations, jnp.int32))
+  outs = jax.jit(jax.vmap(lambda t: _neighbourhood_best(
+      state._replace(iteration=t), config.limits(), config)))(jnp.asarray(iterations, jnp.int32))
   for t, out in zip(iterations, np.asarray(outs)):
     _check_choice(out, best_loss,
                   _reference_neighbourhoods("dynamic", n, int(t), config, None))
@@ -452,6 +454,48 @@ def test_stop_weights_combination_stops_before_any_single_criterion():
   assert int(result.num_evaluations) == 8 * (expected + 1)
 
 
+def test_limits_hold_the_termination_settings_and_static_drops_them():
+  config = dataclasses.replace(CFG, max_iterations=50, patience=7, tolerance=1e-3,
+                               target_loss=0.25, stop_weights=(0.5, 0.25, 1.0))
+  limits = config.limits()
+  assert isinstance(limits, pso.PSOLimits)
+  expected = dict(max_iterations=(50, np.int32, ()), patience=(7, np.int32, ()),
+                  tolerance=(1e-3, np.float32, ()), target_loss=(0.25, np.float32, ()),
+                  stop_weights=([0.5, 0.25, 1.0], np.float32, (3,)))
+  for name, (value, dtype, shape) in expected.items():
+    field = getattr(limits, name)
+    assert not isinstance(field, jax.Array), name  # host values: no device dispatch
+    assert (field.dtype, field.shape) == (dtype, shape), name
+    np.testing.assert_array_equal(field, np.asarray(value, dtype), err_msg=name)
+  # Disabled criteria: a patience no stall reaches, a target no loss reaches, no weights.
+  off = CFG.limits()
+  assert int(off.patience) == 2**31 - 1 and float(off.target_loss) == -np.inf
+  np.testing.assert_array_equal(off.stop_weights, np.zeros(3, np.float32))
+  # Configs that differ only in termination share one static config; others do not.
+  assert config.static() == CFG.static() and hash(config.static()) == hash(CFG.static())
+  assert config.static() != dataclasses.replace(CFG, topology="ring").static()
+  assert dataclasses.replace(config.static(), **{k: getattr(config, k) for k in expected}) == config
+
+
+def test_every_status_from_one_compiled_program():
+  # A constant loss never improves, so the stall equals the iteration.
+  base = pso.PSOConfig(swarm_size=8, max_iterations=100, patience=None)
+  cases = [
+      (dict(), pso.Status.MAX_ITERATIONS, 100),  # the stall reaches 100, patience is off
+      (dict(patience=7), pso.Status.STAGNATED, 7),
+      (dict(patience=100, stop_weights=(0.7, 0.7, 0.0)), pso.Status.COMBINED, 72),
+      (dict(stop_weights=(2.0, 0.0, 0.0)), pso.Status.COMBINED, 50),
+      (dict(target_loss=1.0), pso.Status.TARGET_REACHED, 0),
+      (dict(max_iterations=30, tolerance=0.5, target_loss=0.5), pso.Status.MAX_ITERATIONS, 30),
+  ]
+  programs = _run._cache_size()
+  for changes, status, iterations in cases:
+    result = pso.run(0, _constant, LOWER, UPPER, None, config=dataclasses.replace(base, **changes))
+    assert (int(result.status), int(result.num_iterations)) == (status, iterations), changes
+    assert int(result.num_evaluations) == 8 * (iterations + 1)
+  assert _run._cache_size() - programs <= 1  # none if another test compiled it already
+
+
 # ------------------------------------------------------------- non-finite
 def test_nan_half_of_the_box_never_becomes_a_best():
   result, record = pso.trace(4, _half_nan, LOWER, UPPER, SHIFT, config=CFG, keep_positions=True)
@@ -631,6 +675,56 @@ def test_new_args_bounds_or_hparams_do_not_recompile():
   np.testing.assert_allclose(second.x, other, atol=0.05)
   np.testing.assert_allclose(third.x, other, atol=0.05)
   assert not np.array_equal(second.state.x, third.state.x)
+
+
+def test_new_termination_settings_do_not_recompile():
+  config = dataclasses.replace(CFG, swarm_size=12)  # a program of its own
+  first = pso.run(0, _counted_sphere, LOWER, UPPER, SHIFT, config=config)
+  traces, programs = _TRACES[0], _run._cache_size()
+  cases = [
+      (dict(max_iterations=25), pso.Status.MAX_ITERATIONS),
+      (dict(patience=3, tolerance=0.5), pso.Status.STAGNATED),
+      (dict(target_loss=1e-2), pso.Status.TARGET_REACHED),
+      (dict(stop_weights=(2.0, 0.0, 0.0)), pso.Status.COMBINED),
+  ]
+  for changes, status in cases:
+    result = pso.run(0, _counted_sphere, LOWER, UPPER, SHIFT,
+                     config=dataclasses.replace(config, **changes))
+    assert int(result.status) == status, changes
+  # The settings were used, not those of the compiling call.
+  assert int(result.num_iterations) == 20  # 2 · t / 40 >= 1
+  _assert_same_result(first, pso.run(0, _counted_sphere, LOWER, UPPER, SHIFT, config=config))
+  assert (_TRACES[0], _run._cache_size()) == (traces, programs)
+  # `trace` takes them at runtime too, except max_iterations: its scan length.
+  pso.trace(0, _counted_sphere, LOWER, UPPER, SHIFT, config=config)
+  traces = _TRACES[0]
+  stopped, _ = pso.trace(0, _counted_sphere, LOWER, UPPER, SHIFT, config=dataclasses.replace(
+      config, patience=3, target_loss=1e-2, stop_weights=(0.0, 0.0, 1.0)))
+  assert int(stopped.status) == pso.Status.TARGET_REACHED
+  assert _TRACES[0] == traces
+  pso.trace(0, _counted_sphere, LOWER, UPPER, SHIFT,
+            config=dataclasses.replace(config, max_iterations=25))
+  assert _TRACES[0] > traces
+
+
+def test_traced_limits_equal_the_configured_runs():
+  # As a caller's compiled program runs the swarm: the limits are traced (here vmapped).
+  configs = [dataclasses.replace(CFG, variant="linear_inertia", topology="dynamic", **changes)
+             for changes in (dict(max_iterations=20), dict(patience=4, tolerance=0.1),
+                             dict(target_loss=1e-3),
+                             dict(patience=40, tolerance=1.0, stop_weights=(0.6, 0.9, 0.0)))]
+  limits = jax.tree.map(lambda *v: np.stack(v), *(c.limits() for c in configs))
+  hparams = pso.default_hparams("linear_inertia")
+  solve = jax.jit(jax.vmap(lambda lim: _run_impl(
+      0, LOWER, UPPER, SHIFT, hparams, None, None, None, None, loss_fn=_sphere,
+      config=configs[0].static(), limits=lim)))
+  batched = solve(limits)
+  np.testing.assert_array_equal(batched.status, [
+      pso.Status.MAX_ITERATIONS, pso.Status.STAGNATED, pso.Status.TARGET_REACHED,
+      pso.Status.COMBINED])
+  for i, config in enumerate(configs):
+    single = pso.run(0, _sphere, LOWER, UPPER, SHIFT, config=config)
+    _assert_same_result(jax.tree.map(lambda a, i=i: a[i], batched), single)
 
 
 def test_hparams_can_be_vmapped():

@@ -1,21 +1,17 @@
-"""One registration of a template in an image: Gauss–Newton, the swarm, Gauss–Newton.
+"""`align`: one registration of a template in an image, or a batch of them.
 
-`align(image, template, init_homography)` first refines the start with a few
-Levenberg–Marquardt steps per pyramid level (`jaxpso._src.refine`); when that
-reaches `TrackConfig.accept_quality` it is the result.  Otherwise the PSO
-engine searches the motion parameters (`jaxpso._src.motion`) at the coarsest
-level of a Gaussian pyramid, where the similarity's basin is widest and a
-swarm evaluation cheapest, the swarm's best is refined level by level down to
-full resolution (the hybrid: the swarm finds the basin, Gauss–Newton the last
-sub-pixel), and the better of the two is kept.  When that result's
-`quality` is low and the swarm and the start's refinement disagree, `align`
-searches once more with a larger swarm one level finer.  `register` is that pipeline
-on prepared inputs, shared with `track`; `TrackConfig.method` swaps it for a
-gradient baseline (`jaxpso._src.baselines`).  `register` works on batches
-(`vmap` over the templates; the swarm and the retry run only for the
-elements that need them, `where_needed`), and `align` takes a batch of N
-alignments.  Everything after input checks is one compiled function per
-(shapes, config).
+`align(image, template, init_homography)` prepares its inputs on the host
+(the template's point sets, `jaxpso._src.template`; the image's pyramid
+around the start, `jaxpso._src.atlas`) and runs one compiled program: the
+stages of `jaxpso._src.register` (Gauss–Newton from the start; when that
+does not reach `TrackConfig.accept_quality`, a coarser start, the swarm and
+Gauss–Newton from its best; a retry when the swarm and the start disagree
+on a poor match).  `TrackConfig.method` swaps the pipeline for a gradient
+baseline (`jaxpso._src.baselines`).  Neither the image's nor the
+template's size, nor any setting but the few `TrackConfig.statics`, enters
+the compiled program, so one program serves every alignment of a
+(similarity, motion, method, swarm) and is kept across processes
+(`jaxpso._src.programs`).
 """
 
 from __future__ import annotations
@@ -30,17 +26,17 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxpso._src import atlas
 from jaxpso._src import baselines
 from jaxpso._src import checks
-from jaxpso._src import compile_options
 from jaxpso._src import homography
 from jaxpso._src import motion
 from jaxpso._src import plane
+from jaxpso._src import programs
 from jaxpso._src import pso
-from jaxpso._src import refine
-from jaxpso._src import sampling
+from jaxpso._src import register
 from jaxpso._src import sharding
-from jaxpso._src import similarity
+from jaxpso._src import template as templates
 
 SIMILARITIES = ("mi", "ncc", "ssd")
 """Names accepted by `TrackConfig.similarity`."""
@@ -48,11 +44,6 @@ MOTIONS = ("homography", "plane")
 """Names accepted by `TrackConfig.motion`."""
 DOFS = (2, 4, 6)
 """Values accepted by `TrackConfig.dof` (motion "plane")."""
-
-
-# Gauss–Newton stops once a step moves the corners by under this many pixels
-# of the level being refined.
-_TOLERANCE = 0.01
 
 
 class AlignStatus(enum.IntEnum):
@@ -63,16 +54,23 @@ class AlignStatus(enum.IntEnum):
 
 # `TrackConfig.levels=None`: the coarsest level keeps the template's shorter
 # side at least COARSEST_PX pixels, with at most AUTO_LEVELS levels.
-COARSEST_PX, AUTO_LEVELS = 12, 4
-
+COARSEST_PX, AUTO_LEVELS = 12, atlas.MAX_LEVELS
 
 # `TrackConfig.lost_quality=None`: the quality below which a frame is lost.
 LOST_QUALITY = {"mi": 0.65, "ncc": 0.8, "ssd": 0.5}
 
+# Supported template sides (pixels): the coarsest level needs a few pixels,
+# and beyond the largest the template's pyramid would need more levels.
+TEMPLATE_SIDES = (8, 4096)
+
 
 @dataclasses.dataclass(frozen=True)
 class TrackConfig:
-  """Static settings of `align` and `track`; a change recompiles.
+  """Settings of `align` and `track`.
+
+  Only method, similarity, motion, dof, bins, swarm_size, variant and
+  topology shape the compiled programs (`statics`); every other setting
+  reaches them as data (`knobs`), so changing it never recompiles.
 
   Attributes:
     method: "pso" (default: the swarm, then Gauss–Newton) or a gradient
@@ -92,10 +90,10 @@ class TrackConfig:
     topology: PSO topology (`jaxpso.pso.TOPOLOGIES`).
     search_radius: half-width, in full-resolution pixels of corner motion, of
       the box searched in every motion parameter around the start.
-    levels: pyramid levels; the swarm searches the coarsest.  None (the
-      default): as many as keep the template's shorter side at least
-      `COARSEST_PX` pixels on the coarsest level, at most `AUTO_LEVELS`
-      (`for_template`): 4 for a 100×100 template, 3 for 48×48.  With 4
+    levels: pyramid levels (at most `AUTO_LEVELS`); the swarm searches the
+      coarsest.  None (the default): as many as keep the template's shorter
+      side at least `COARSEST_PX` pixels on the coarsest level, at most
+      `AUTO_LEVELS` (`for_template`): 4 for a 100×100 template, 3 for 48×48.  With 4
       levels a 48×48 template's coarsest level is 6×6, and on a clip
       translating 5 px a frame 4 of its 12 fully visible frames came out
       10–14 px off (quality 0.41–0.51); with 3, none
@@ -104,7 +102,8 @@ class TrackConfig:
       after the swarm (0 disables the refinement).
     pixels: fraction of the full-resolution template's pixels the
       refinement uses there, those with the largest gradient magnitude (at
-      least 256 or all of them); 1 uses every pixel.  The coarser levels and
+      least 256 or all of them, at most `template.LEVEL_POINTS`); 1 uses
+      every pixel.  The coarser levels and
       the swarm always use every pixel (selecting at levels 1–3 as well
       made the refinement from the start converge less often: at σ = 8 px
       the swarm had to run in most trials, 15 ms vs 10 ms per alignment).
@@ -130,8 +129,8 @@ class TrackConfig:
       single threshold 0.5: NCC 0.69–0.74 (a brick texture locked one
       period off after a jump, a target gone out of the frame), MI 0.50–0.62
       (chance matches of low-texture regions).
-    retry_quality: `align` runs a second swarm (another seed,
-      `recovery_scale` × the particles and the iterations, same box, one
+    retry_quality: `align` runs a second search (`recovery_scale` swarms of
+      other seeds, each `recovery_scale` × the iterations, same box, one
       pyramid level finer) when the quality of its first result is below
       this and the swarm's result and the start's refinement disagree, and
       keeps the better result.  At σ = 16 / 20 px (50 trials each) the
@@ -139,8 +138,8 @@ class TrackConfig:
       98 / 92 %; the agreement test keeps correct alignments of a noisy
       image (quality 0.7–0.95) from paying for it (σ = 8, noise 0.03:
       111 → 24 ms median).
-    recovery_scale: `track`'s recovery search has this many times the radius,
-      iterations and particles of the normal search; its swarm searches the
+    recovery_scale: `track`'s recovery search has this many times the radius
+      and iterations of the normal search, and as many swarms; its swarm searches the
       template's 2-D translation only, and Gauss–Newton the full motion from
       its best.  Over every motion parameter in the wide box the swarm
       seldom found a region that had moved while hidden: on occluded
@@ -184,6 +183,8 @@ class TrackConfig:
       checks.check_int(getattr(self, name), f"TrackConfig.{name}", 1)
     if self.levels is not None:
       checks.check_int(self.levels, "TrackConfig.levels", 1)
+      if self.levels > AUTO_LEVELS:
+        raise ValueError(f"TrackConfig.levels must be at most {AUTO_LEVELS}, got {self.levels!r}")
     checks.check_int(self.bins, "TrackConfig.bins", 4)  # the B-spline kernel spans 4 bins
     checks.check_int(self.refine_steps, "TrackConfig.refine_steps", 0)
     if not 0 < checks.check_real(self.search_radius, "TrackConfig.search_radius") < math.inf:
@@ -216,6 +217,37 @@ class TrackConfig:
                          topology=self.topology, max_iterations=self.max_iterations,
                          patience=self.patience, batched=True)
 
+  def statics(self) -> "TrackConfig":
+    """The settings that shape the compiled programs, the others at their defaults (a program's key)."""
+    return _statics(self)
+
+  def knobs(self) -> register.Knobs:
+    """The runtime settings as `register.Knobs` (NumPy scalars: no device work)."""
+    off = np.float32(np.inf)
+    return register.Knobs(
+        search_radius=np.float32(self.search_radius),
+        max_iterations=np.int32(self.max_iterations),
+        patience=np.int32(2**31 - 1 if self.patience is None else self.patience),
+        refine_steps=np.int32(self.refine_steps),
+        accept_quality=off if self.accept_quality is None else np.float32(self.accept_quality),
+        retry_quality=np.float32(self.retry_quality),
+        lost_quality=np.float32(self.lost_threshold), min_valid=np.float32(self.min_valid),
+        recovery_scale=np.int32(self.recovery_scale), predict=np.bool_(self.predict))
+
+
+_RUNTIME = ("search_radius", "max_iterations", "patience", "refine_steps", "accept_quality",
+            "retry_quality", "lost_quality", "min_valid", "recovery_scale", "predict", "levels",
+            "pixels")
+
+
+@functools.lru_cache(maxsize=256)
+def _statics(config: TrackConfig) -> TrackConfig:
+  defaults = TrackConfig()
+  if config.method != "pso":  # a baseline's loops are unrolled per level
+    return dataclasses.replace(config, **{k: getattr(defaults, k) for k in _RUNTIME
+                                          if k not in ("levels", "max_iterations", "min_valid")})
+  return dataclasses.replace(config, **{k: getattr(defaults, k) for k in _RUNTIME})
+
 
 @functools.lru_cache(maxsize=64)
 def _with_levels(config: TrackConfig, shape: tuple) -> TrackConfig:
@@ -232,8 +264,8 @@ class AlignResult(NamedTuple):
   Attributes:
     homography: (3, 3) template → image homography, h[2, 2] = 1.
     score: () the similarity at it (an error for "ssd", else higher is better).
-    quality: () the score relative to the template's own (`quality`): about 1
-      for a match, lower the worse.
+    quality: () the score relative to the template's own (`register.quality`):
+      about 1 for a match, lower the worse.
     status: () int32 `AlignStatus`.
     num_iterations: () int32 PSO iterations plus refinement steps.
     num_evaluations: () int32 swarm evaluations (particles × iterations) plus
@@ -274,512 +306,55 @@ def to_gray(image, name: str):
   return grey
 
 
-def _measure(config: TrackConfig):
-  """loss(template or SoftBins, patches, mask) -> (...) to minimise, and the score's sign."""
-  if config.similarity == "mi":
-    return lambda a, b, m: -similarity.mi(a, b, m, min_valid=config.min_valid), -1.0
-  if config.similarity == "ncc":
-    return lambda a, b, m: -similarity.ncc(a, b, m, min_valid=config.min_valid), -1.0
-  return lambda a, b, m: similarity.ssd(a, b, m, min_valid=config.min_valid), 1.0
+def score_sign(config: TrackConfig) -> float:
+  """The sign that turns a loss into the similarity's score (SSD is reported as the error)."""
+  return 1.0 if config.similarity == "ssd" else -1.0
 
 
-class Template(NamedTuple):
-  """A template prepared once for every registration against it (a pytree).
-
-  Attributes:
-    pyramid: `levels` arrays (h_l, w_l), full resolution first.
-    bins: their soft-bin weights (h_l, w_l, bins) for "mi", binned over
-      `value_range`, else the pyramid.
-    selected: per level, the refinement's pixels (`TrackConfig.pixels`): a
-      tuple (grid (h', w', 2) template points, their values (h', w'), their
-      soft bins (h', w', bins) or values); the whole level when pixels = 1.
-    value_range: (2,) the intensity range the template is binned over
-      (`intensity_range`).
-    self_loss: () the loss of the template against itself (for "ssd" its
-      variance), the scale of `quality`.
-  """
-  pyramid: list
-  bins: list
-  selected: list
-  value_range: jax.Array
-  self_loss: jax.Array
-
-  def reference(self, level: int, image_range=None, selected: bool = False):
-    """What `_measure`'s loss takes as the template at `level` (or its selection).
-
-    For "mi", soft bins against patches binned over `image_range` (2,)
-    (default: the template's own range).
-    """
-    bins = self.selected[level][2] if selected else self.bins[level]
-    if bins.ndim == 2:
-      return bins
-    lo, hi = self.value_range if image_range is None else image_range
-    return similarity.SoftBins(bins, lo, hi)
-
-
-# MI bins intensities over the range between these quantiles of the template
-# (and, for the image, the union of that and the same range of the image where
-# the start puts the template), widened by _RANGE_MARGIN of its span each way
-# and at least _MIN_SPAN wide, so that a low-contrast template fills the bins
-# instead of two or three of them: some failures of benchmarks/convergence.py
-# with the fixed range [0, 1] were templates of intensity std 0.06–0.11.
-# Measured on its 50 trials (successes at σ = 8 / 16): fixed range 47 / 46,
-# image range alone 46 / 47, union 46 / 48.
-# The quantiles are read off a histogram of _RANGE_HISTOGRAM bins between the
-# extremes (to 1/1000 of the span): XLA's CPU sort of 10⁴ values, which
-# jnp.quantile uses, took 1.6 ms, a third of a whole accepted alignment.
-_RANGE_QUANTILES, _RANGE_MARGIN, _MIN_SPAN = (0.01, 0.99), 0.1, 0.05
-_RANGE_HISTOGRAM = 1024
-
-
-def intensity_range(values, mask) -> jax.Array:
-  """(2,) the binning range of the (h, w) `values` where `mask`; (0, 1) if none is valid."""
-  valid = mask & jnp.isfinite(values)
-  least = jnp.min(jnp.where(valid, values, jnp.inf))
-  span = jnp.max(jnp.where(valid, values, -jnp.inf)) - least
-  span = jnp.where(span > 0, span, 1.0)
-  index = jnp.clip(((values - least) / span * _RANGE_HISTOGRAM).astype(jnp.int32), 0,
-                   _RANGE_HISTOGRAM - 1)
-  counts = jnp.zeros(_RANGE_HISTOGRAM, jnp.float32).at[
-      jnp.where(valid, index, _RANGE_HISTOGRAM).reshape(-1)].add(1.0, mode="drop")
-  cumulative = jnp.cumsum(counts)
-  bins = jnp.searchsorted(cumulative, jnp.asarray(_RANGE_QUANTILES) * cumulative[-1])
-  lo, hi = least + (bins + 0.5) * (span / _RANGE_HISTOGRAM)
-  centre = 0.5 * (lo + hi)
-  half = jnp.maximum(hi - lo, _MIN_SPAN) * (0.5 + _RANGE_MARGIN)
-  both = jnp.stack([centre - half, centre + half])
-  return jnp.where(jnp.any(mask) & jnp.all(jnp.isfinite(both)), both, jnp.asarray([0.0, 1.0]))
-
-
-# The pixel selection keeps at least this many pixels per level.
-_MIN_PIXELS = 256
-
-
-def _select(template, bins, fraction: float):
-  """`Template.selected` entry: the pixels of largest gradient magnitude."""
-  grid = sampling.template_grid(template.shape)
-  count = max(_MIN_PIXELS, math.ceil(fraction * template.size))
-  if count >= template.size:
-    return grid, template, bins
-  gy, gx = jnp.gradient(template)
-  _, chosen = jax.lax.top_k((gx * gx + gy * gy).reshape(-1), count)
-
-  def pick(a):
-    return a.reshape((template.size,) + a.shape[2:])[chosen][None]
-
-  return pick(grid), pick(template), pick(bins)
-
-
-def prepare_template(template, config: TrackConfig) -> Template:
-  """(h, w) grey template → `Template` (its pyramid, soft bins and selection)."""
-  pyramid = sampling.gaussian_pyramid(template, config.levels)
-  value_range = intensity_range(template, jnp.ones(template.shape, bool))
-  bins = ([similarity.soft_bins(t, bins=config.bins, value_range=tuple(value_range)).weights
-           for t in pyramid] if config.similarity == "mi" else pyramid)
-  selected = [_select(t, b, config.pixels if level == 0 else 1.0)
-              for level, (t, b) in enumerate(zip(pyramid, bins))]
-  prepared = Template(pyramid, bins, selected, value_range, jnp.var(template))
-  if config.similarity != "ssd":
-    loss_of, _ = _measure(config)
-    prepared = prepared._replace(
-        self_loss=loss_of(prepared.reference(0), template, jnp.ones(template.shape, bool)))
-  return prepared
-
-
-def prepare_frame(image, config: TrackConfig) -> tuple[list, list]:
-  """(H, W) grey image, or (R, H, W) images → each pyramid level packed by `sampling.pack_quads`
-  (((H_l−1)·(W_l−1), 4), with the leading R if batched), and the levels' (H_l, W_l)."""
-  def packed(image):
-    return [sampling.pack_quads(level) for level in sampling.gaussian_pyramid(image, config.levels)]
-
-  shapes = [tuple(image.shape[-2:])]
-  for _ in range(config.levels - 1):
-    shapes.append(tuple((size + 1) // 2 for size in shapes[-1]))  # what pyr_down gives
-  return (jax.vmap(packed)(image) if image.ndim == 3 else packed(image)), shapes
-
-
-def quality(loss, template: Template, patch, mask, image_range, config: TrackConfig):
-  """The loss of the (h, w) `patch` (valid where `mask`) → () quality, about 1 for a match.
-
-  "ssd": 1 − SSD / the template's variance; "ncc": NCC over the template's
-  own; "mi": MI(T, I) / √(MI(T, T) · MI(I, I)), I the patch binned over
-  `image_range`, so that a correct alignment scores near 1 under a monotone
-  intensity change of the image too (on benchmarks/convergence.py's trials
-  under gamma 0.5, correct alignments scored 0.82–0.99 against MI(T, T)
-  alone, 0.94–0.98 with this normalisation; failures 0.04–0.86 either way).
-  0 for a flat template or patch; -inf where the loss is (too few valid
-  pixels).  It can exceed 1 slightly (soft binning).
-  """
-  if config.similarity == "ssd":
-    scale, informative = template.self_loss, template.self_loss > 0
-    ratio = loss / jnp.where(informative, scale, 1.0)
-    value = 1.0 - ratio
-  else:
-    scale = template.self_loss  # −MI(T, T) or −NCC(T, T)
-    if config.similarity == "mi":
-      bins = similarity.soft_bins(patch, bins=config.bins, value_range=tuple(image_range))
-      loss_of, _ = _measure(config)
-      scale = -jnp.sqrt(jnp.maximum(scale * loss_of(bins, patch, mask), 0.0))
-    informative = scale < 0
-    value = loss / jnp.where(informative, scale, -1.0)
-  return jnp.where(jnp.isfinite(loss), jnp.where(informative, value, 0.0), -jnp.inf)
-
-
-class Registration(NamedTuple):
-  """What `register` found (all arrays).
-
-  Attributes:
-    u: (D,) motion parameters relative to the base.
-    homography: (3, 3) template → frame, h[2, 2] = 1.
-    loss: () the loss at full resolution (+inf if too few pixels are valid).
-    quality: () its `quality`.
-    confirmed: () bool: accepted from the start alone, or the swarm's result
-      and the start's refinement agree (within `_AGREE_PX` at every corner).
-    num_iterations: () PSO iterations plus refinement steps (of both candidates).
-    num_evaluations: () particle evaluations plus refinement steps.
-  """
-  u: jax.Array
-  homography: jax.Array
-  loss: jax.Array
-  quality: jax.Array
-  confirmed: jax.Array
-  num_iterations: jax.Array
-  num_evaluations: jax.Array
-
-
-# Two registrations agree when no template corner is further apart than this
-# (full-resolution pixels).
-_AGREE_PX = 1.0
-
-
-def _corner_gap(first, second, shape) -> jax.Array:
-  """() the largest distance between the template corners that two (3, 3) homographies map."""
-  gap = (homography.homography_to_corner_offsets(first, shape)
-         - homography.homography_to_corner_offsets(second, shape))
-  return jnp.max(jnp.linalg.norm(gap.reshape(4, 2), axis=-1))
-
-
-class _Registrar:
-  """One template's registration in one frame (unbatched): the pieces `register` maps over a batch.
-
-  Args:
-    frame: `prepare_frame` levels of one image.  frame_shapes: their (H, W).
-    template: one `Template`.  base: the motion's base ((3, 3) start
-    homography or (4, 4) base pose).  geometry: `motion.Plane` or None.
-    image_range: (2,) the MI binning range of the image (`image_range`), else None.
-  """
-
-  def __init__(self, frame, frame_shapes, template: Template, base, geometry, image_range,
-               config: TrackConfig):
-    self.frame, self.frame_shapes, self.template = frame, frame_shapes, template
-    self.image_range, self.config = image_range, config
-    self.loss_of, _ = _measure(config)
-    self.shape = template.pyramid[0].shape
-    self.dim = motion.dimension(config.motion, config.dof)
-    self.to_h = functools.partial(motion.to_homography, base=base, geometry=geometry,
-                                  shape=self.shape, motion=config.motion, dof=config.dof)
-
-  def at_level(self, u, level):
-    return homography.homography_to_level(self.to_h(u), level)
-
-  def warp_loss(self, level, reference, h, patches, mask):
-    """The loss of warps h (…, 3, 3) at `level`; +inf where not admissible."""
-    loss = self.loss_of(reference, patches, mask)
-    return jnp.where(motion.admissible(h, self.template.pyramid[level].shape), loss, jnp.inf)
-
-  def finish(self, u, iterations, evaluations, loss=None) -> Registration:
-    """The registration at u, its loss over every pixel computed unless given."""
-    h = self.at_level(u, 0)
-    patch, mask = sampling.sample_quads(self.frame[0], self.frame_shapes[0], h, self.shape)
-    if loss is None:
-      loss = self.warp_loss(0, self.template.reference(0, self.image_range), h, patch, mask)
-      evaluations += 1
-    return Registration(u=u, homography=normalized(self.to_h(u)), loss=loss,
-                        quality=quality(loss, self.template, patch, mask, self.image_range,
-                                        self.config),
-                        confirmed=jnp.asarray(False), num_iterations=iterations,
-                        num_evaluations=evaluations)
-
-  def baseline(self, max_iterations: int) -> Registration:
-    """`TrackConfig.method`'s gradient registration from the base."""
-    config, template = self.config, self.template
-    u, loss, iterations, evaluations = baselines.register(
-        config.method, self.frame, self.frame_shapes, template.pyramid, self.to_h, self.dim,
-        lambda level, h, patches, mask: self.warp_loss(
-            level, template.reference(level, self.image_range), h, patches, mask),
-        similarity=config.similarity, levels=config.levels, iterations=max_iterations)
-    return self.finish(u, iterations, evaluations, loss)
-
-  def descend(self, u, top: int, iterations, evaluations) -> Registration:
-    """u refined by Gauss–Newton from level `top` down to full resolution."""
-    config = self.config
-    for level in reversed(range(top + 1)):
-      grid, values, bins = self.template.selected[level]
-      reference = self.template.reference(level, self.image_range, selected=True)
-      u, _, taken = refine.gauss_newton(
-          u, self.frame[level], self.frame_shapes[level], grid, values,
-          bins if config.similarity == "mi" else None,
-          functools.partial(self.warp_loss, level, reference),
-          functools.partial(self.at_level, level=level), config.refine_steps, config.similarity,
-          _TOLERANCE * 2.0 ** level)
-      iterations, evaluations = iterations + taken, evaluations + taken
-    return self.finish(u, iterations, evaluations)  # the loss over every pixel
-
-  def start(self, top: int = 1) -> Registration:
-    """The start refined from level `top` (at most the coarsest) down."""
-    zero = jnp.zeros([], jnp.int32)
-    return self.descend(jnp.zeros(self.dim, jnp.float32), min(top, self.config.levels - 1), zero,
-                        zero)
-
-  def search(self, seed, radius, *, max_iterations: int, swarm_size: int, level: int,
-             translation: bool) -> Registration:
-    """The swarm at pyramid `level` over ±radius, its best refined down (see `register`)."""
-    config, dim = self.config, self.dim
-    reference = self.template.reference(level, self.image_range)
-
-    def swarm_loss(u, _):  # u: (n, D)
-      h = self.at_level(u, level)
-      patches, mask = sampling.sample_quads(self.frame[level], self.frame_shapes[level], h,
-                                            self.template.pyramid[level].shape)
-      return self.warp_loss(level, reference, h, patches, mask)
-
-    def lift(v):  # (…, 2) image translation → (…, D) parameters
-      if config.motion == "homography":
-        return jnp.tile(v, 4)
-      return jnp.concatenate([v, jnp.zeros(v.shape[:-1] + (dim - 2,), v.dtype)], axis=-1)
-
-    width = 2 if translation else dim  # the swarm's dimension
-    to_u = lift if translation else (lambda v: v)
-    box = jnp.full(width, radius, jnp.float32)
-    pso_config = dataclasses.replace(config.pso_config(), max_iterations=max_iterations,
-                                     swarm_size=swarm_size)
-    found = pso._run(seed, -box, box, None, pso.default_hparams(config.variant), None, None,
-                     jnp.zeros(width, jnp.float32), box,
-                     loss_fn=lambda v, args: swarm_loss(to_u(v), args), config=pso_config)
-    return self.descend(to_u(found.x), level, found.num_iterations, found.num_evaluations)
-
-
-def image_range(frame, template: Template, base, geometry, *, frame_shapes, config: TrackConfig):
-  """(2,) MI binning range: the template's and the image's where the base puts it (None unless MI)."""
-  if config.similarity != "mi":
-    return None
-  shape = template.pyramid[0].shape
-  h = motion.to_homography(jnp.zeros(motion.dimension(config.motion, config.dof), jnp.float32),
-                           base=base, geometry=geometry, shape=shape, motion=config.motion,
-                           dof=config.dof)
-  lo, hi = intensity_range(*sampling.sample_quads(frame[0], frame_shapes[0], h, shape))
-  return jnp.stack([jnp.minimum(lo, template.value_range[0]),
-                    jnp.maximum(hi, template.value_range[1])])
-
-
-def select(mask, first, second):
-  """Per batch element, `first` where the (R,) `mask` holds, else `second` (pytrees, leading R)."""
-  return jax.tree.map(
-      lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b),
-      first, second)
-
-
-def take(tree, indices):
-  """The elements `indices` (C,) of every leaf's leading axis."""
-  return jax.tree.map(lambda a: a[indices], tree)
-
-
-def _share() -> int:
-  """A batch of R runs its costly searches on ceil(R / _share()) elements at a time (`where_needed`).
-
-  32 on a CPU, where the work is compute-bound and an idle slot of a round
-  costs as much as a busy one: at R = 64 (about 4.5 regions needing the
-  swarm per frame) a region-frame took 1.7 ms with 32, 2.3 ms with 8
-  (benchmarks/batch.py's regions, 20 frames, with an unrolled Cholesky
-  solve since reverted).  8 on accelerators, whose slots run in parallel
-  (not measured on a GPU).
-  """
-  return 32 if jax.default_backend() == "cpu" else 8
-
-
-def where_needed(mask, compute: Callable, otherwise):
-  """`otherwise` with the elements where the (R,) `mask` holds replaced by `compute`'s.
-
-  `compute(indices)` gets (C,) element indices and returns those elements'
-  results (leading C).  Only the elements that need it are computed, C =
-  ceil(R / _share()) at a time in a `lax.while_loop` of as many rounds as
-  needed (none when no element does).  Under `vmap` a per-element
-  `lax.cond` would run the costly branch (the swarm, the retry, the recovery
-  search) for every element on every frame.
-  """
-  size = mask.shape[0]
-  capacity = -(-size // _share())
-  padded = -(-size // capacity) * capacity
-  needed = jnp.sum(mask)
-  # The needing elements first; every other slot is the out-of-range index `size`.
-  order = jnp.argsort(~mask, stable=True)
-  order = jnp.where(jnp.arange(size) < needed, order, size)
-  order = jnp.concatenate([order, jnp.full(padded - size, size, order.dtype)])
-
-  def round_(state):
-    done, results = state
-    indices = jax.lax.dynamic_slice(order, (done,), (capacity,))
-    found = compute(jnp.minimum(indices, size - 1))
-    results = jax.tree.map(lambda a, f: a.at[indices].set(f, mode="drop"), results, found)
-    return done + capacity, results
-
-  def rounds(_):
-    return jax.lax.while_loop(lambda state: state[0] < needed, round_,
-                              (jnp.zeros([], needed.dtype), otherwise))[1]
-
-  # The cond keeps frames that need nothing from entering the loop at all:
-  # with zero rounds it still cost a 1-region track 16 ms per frame (4 ms).
-  return jax.lax.cond(needed > 0, rounds, lambda _: otherwise, None)
-
-
-def register(frame: list, frame_shapes: list, template: Template, base, geometry, seed,
-             radius, *, config: TrackConfig, max_iterations: int,
-             swarm_size: int | None = None, accept: Callable | None = None,
-             from_start: bool = True, search_level: int | None = None,
-             translation: bool = False, coarse_start: bool = False,
-             indices=None) -> Registration:
-  """Gauss–Newton from the start, then, unless `accept`ed, the swarm and Gauss–Newton; batched.
-
-  Every per-template argument and the result have a leading batch axis R.
-  The start is refined from level 1 down (the coarser levels' optimum can be
-  a wrong one near a start already in the right basin).  Where `accept` says
-  its loss is good enough, that is the result; otherwise the swarm searches
-  the coarsest level, its best is refined down to full resolution, and the
-  better of the two is returned.  The swarm runs only for the elements that
-  need it (`where_needed`).
-
-  Args:
-    frame: `prepare_frame` output, of one image shared by the batch
-      ((H_l−1)(W_l−1), 4) or of one image per element (R, …).
-    frame_shapes: their (H, W), static.
-    template: `prepare_template` outputs stacked (R, …).
-    base: (R, 3, 3) start homographies or (R, 4, 4) base poses.
-    geometry: `motion.Plane` (R, …) for motion "plane", else None.
-    seed: (R, 2) uint32 swarm seeds.  radius: () search half-width, pixels.
-    config: settings.  max_iterations: the swarm's iteration cap (static).
-    swarm_size: particles (static); `config.swarm_size` if None.
-    accept: `Registration` → (R,) bool, or None to always run the swarm.
-    from_start: refine the start (static); False runs the swarm alone.
-    search_level: the pyramid level the swarm searches (static); the
-      coarsest if None.
-    translation: the swarm searches the template's 2-D image translation
-      only (static): every corner offset alike for "homography", (tx, ty)
-      for "plane"; the refinement then adjusts all parameters.
-    coarse_start: where the start refined from level 1 is not accepted,
-      refine it again from the coarsest level, and run the swarm only where
-      the better of the two is not accepted either (static).
-    indices: (C,) register only these elements (the result has the leading
-      C); all if None.
-  """
-  frame_axis = 0 if frame[0].ndim == 3 else None
-  batched = (frame_axis, 0, 0, 0)  # the axes of (frame, template, base, geometry)
-
-  def subset(inputs, axes, indices):
-    """The `indices` elements of the batched ones of `inputs` (all if indices is None)."""
-    if indices is None:
-      return inputs
-    return tuple(x if axis is None else take(x, indices) for x, axis in zip(inputs, axes))
-
-  frame, template, base, geometry, seed = subset((frame, template, base, geometry, seed),
-                                                 batched + (0,), indices)
-  ranges = jax.vmap(functools.partial(image_range, frame_shapes=frame_shapes, config=config),
-                    in_axes=batched)(frame, template, base, geometry)
-
-  def mapped(method, *args, indices=None):
-    """`method` of every element's (or the `indices`') `_Registrar` (args batched on axis 0)."""
-    def one(frame, template, base, geometry, image_range, *args):
-      registrar = _Registrar(frame, frame_shapes, template, base, geometry, image_range, config)
-      return method(registrar, *args)
-    axes = batched + (0,) * (1 + len(args))
-    return jax.vmap(one, in_axes=axes)(
-        *subset((frame, template, base, geometry, ranges) + args, axes, indices))
-
-  if config.method != "pso":
-    return mapped(lambda r: r.baseline(max_iterations))
-
-  def search(indices=None) -> Registration:
-    return mapped(lambda r, s: r.search(
-        s, radius, max_iterations=max_iterations, swarm_size=swarm_size or config.swarm_size,
-        level=config.levels - 1 if search_level is None else search_level,
-        translation=translation), seed, indices=indices)
-
-  if not from_start:
-    return search()
-  start = mapped(_Registrar.start)
-  good = jnp.zeros(start.loss.shape, bool) if accept is None else accept(start)
-  if coarse_start and accept is not None and config.levels > 2:
-    def coarse(indices) -> Registration:
-      return better_of(take(start, indices), mapped(
-          lambda r: r.start(top=config.levels - 1), indices=indices))
-    start = where_needed(~good, coarse, start)
-    good = accept(start)
-  shape = template.pyramid[0].shape[1:]
-
-  def searched(indices) -> Registration:
-    found, began = search(indices), take(start, indices)
-    gap = jax.vmap(_corner_gap, in_axes=(0, 0, None))(found.homography, began.homography, shape)
-    return better_of(found, began)._replace(confirmed=gap <= _AGREE_PX)
-
-  return where_needed(~good, searched, start._replace(confirmed=good))
-
-
-def better_of(first: Registration, second: Registration) -> Registration:
-  """Per element, the registration with the lower loss (the first on ties), counting both searches."""
-  best = select(first.loss <= second.loss, first, second)
-  return best._replace(num_iterations=first.num_iterations + second.num_iterations,
-                       num_evaluations=first.num_evaluations + second.num_evaluations)
-
-
-@functools.partial(compile_options.jit, static_argnames=("config",))
-def _align(images, templates, init_homographies, offsets, seeds, geometry, *,
-           config: TrackConfig) -> AlignResult:
-  """`align` of a batch: (N, H, W) windows of the images whose top-left pixels are at `offsets` (N, 2).
-
-  templates (N, h, w), init_homographies (N, 3, 3), seeds (N, 2); `geometry`
-  is the `motion.Plane` (N, …) of motion "plane" in image coordinates, else
-  None.  Every field of the result has the leading N axis.
-  """
-  _, sign = _measure(config)
-  frame, shapes = prepare_frame(images, config)
-  prepared = jax.vmap(functools.partial(prepare_template, config=config))(templates)
-  to_window = jax.vmap(lambda o: homography.translation(-o[0], -o[1]))(offsets)
-  start = to_window @ init_homographies
-  if geometry is not None:  # the same plane seen in window coordinates
-    geometry = geometry._replace(camera=to_window @ geometry.camera,
-                                 template_to_frame0=to_window @ geometry.template_to_frame0)
-    start = jnp.broadcast_to(jnp.eye(4, dtype=jnp.float32), (len(offsets), 4, 4))
-  search = functools.partial(register, frame, shapes, prepared, start, geometry,
-                             config=config)
-  found = search(seeds, jnp.float32(config.search_radius), max_iterations=config.max_iterations,
-                 coarse_start=True, accept=(None if config.accept_quality is None
-                         else lambda found: found.quality >= config.accept_quality))
-  weak = ~(found.quality >= config.retry_quality) & ~found.confirmed
-
-  def retry(indices):
-    # A poor match: a second, larger swarm one level finer.
-    wide = search(seeds ^ jnp.uint32(0x5BD1E995), jnp.float32(config.search_radius),
-                  max_iterations=config.max_iterations * config.recovery_scale,
-                  swarm_size=config.swarm_size * config.recovery_scale, from_start=False,
-                  search_level=max(0, config.levels - 2), indices=indices)
-    return better_of(take(found, indices), wide)
-
-  if config.method == "pso":
-    found = where_needed(weak, retry, found)
-  finite = jnp.isfinite(found.loss)
+def _result(found: register.Candidate, offsets, pose, config) -> AlignResult:
+  """`AlignResult` of a batch's best candidates, homographies moved from window to image pixels."""
   to_image = jax.vmap(lambda o: homography.translation(o[0], o[1]))(offsets)
-  pose = None
-  if geometry is not None:
-    pose = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(found.u, start, geometry)
+  finite = jnp.isfinite(found.loss)
   return AlignResult(
-      homography=jax.vmap(normalized)(to_image @ found.homography),
-      score=sign * found.loss, quality=found.quality,
+      homography=jax.vmap(register.normalized)(to_image @ found.homography),
+      score=score_sign(config) * found.loss, quality=found.quality,
       status=jnp.where(finite, AlignStatus.SUCCESS, AlignStatus.NO_VALID_WARP).astype(jnp.int32),
       num_iterations=found.num_iterations, num_evaluations=found.num_evaluations, pose=pose)
 
 
-def normalized(h) -> jax.Array:
-  """(3, 3) h / h[2, 2] with h[2, 2] exactly 1 (XLA divides by multiplying)."""
-  return (h / h[2, 2]).at[2, 2].set(1.0)
+@functools.partial(programs.Program, static_argnames=("config",))
+def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, seeds, offsets,
+           knobs: register.Knobs, *, config: TrackConfig) -> AlignResult:
+  """`align` of a batch of N: every argument has the leading N axis (knobs excepted).
+
+  images: the `atlas.Atlas` of each image's window, whose top-left pixel is
+  at `offsets` (N, 2) in the image; bases (N, 2, 3, 3) the start in window
+  coordinates twice (or (N, 2, 4, 4) identity poses, with `geometry` the
+  `motion.Plane`s in window coordinates); seeds (N, 2) uint32.
+  """
+  contexts = register.each(lambda *a: register.context(*a, knobs, config), images, prepared, bases,
+                           geometry, seeds)
+  found = register.run(contexts, knobs, "align", config).best
+  pose = None
+  if geometry is not None:
+    pose = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(
+        found.u, bases[:, 0], geometry)
+  return _result(found, offsets, pose, config)
+
+
+@functools.partial(programs.Program, static_argnames=("config",))
+def _align_baseline(images: atlas.Atlas, pyramids: list, prepared: templates.Template, bases,
+                    geometry, seeds, offsets, knobs: register.Knobs, *,
+                    config: TrackConfig) -> AlignResult:
+  """`_align` with `config.method`'s gradient registration; `pyramids` the templates' levels, (N, h_l, w_l) each."""
+  contexts = register.each(lambda *a: register.context(*a, knobs, config), images, prepared, bases,
+                           geometry, seeds)
+  found = register.each(lambda c, p: register.baseline(c, p, knobs, config), contexts, pyramids)
+  pose = None
+  if geometry is not None:
+    pose = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(
+        found.u, bases[:, 0], geometry)
+  return _result(found, offsets, pose, config)
 
 
 # A template whose intensity standard deviation (intensities in [0, 1]) is
@@ -797,11 +372,23 @@ def check_texture(spreads, describe: Callable[[int], str]) -> None:
 
 
 def check_template_size(shape, config: TrackConfig, name: str) -> None:
-  """ValueError naming `name` when the coarsest pyramid level is under 4 px."""
+  """ValueError naming `name` when a side is outside `TEMPLATE_SIDES` or the coarsest level is under 4 px."""
+  low, high = TEMPLATE_SIDES
+  if not low <= min(shape) or not max(shape) <= high:
+    raise ValueError(f"{name} of shape {tuple(shape)} is outside the supported sizes: every side"
+                     f" must be {low} to {high} pixels")
   if min(shape) / 2 ** (config.levels - 1) < 4:
     raise ValueError(
         f"{name} of shape {tuple(shape)} is too small for levels={config.levels}:"
         " the coarsest level would be under 4 px")
+
+
+def check_image_size(shape, config: TrackConfig, name: str) -> None:
+  """ValueError naming `name` when the image's coarsest level would be under 2×2 pixels."""
+  coarsest = atlas.level_shapes(shape, config.levels)[-1]
+  if min(coarsest) < 2:
+    raise ValueError(f"levels={config.levels} is too many for {name} of shape {tuple(shape)}:"
+                     " its coarsest level would be smaller than 2×2")
 
 
 def plane_geometry(camera, plane_normal, frame_shape, h0, shape, dof):
@@ -831,11 +418,12 @@ def plane_geometry(camera, plane_normal, frame_shape, h0, shape, dof):
                                shape, dof)
 
 
-def plane_geometries(camera, plane_normal, frame_shape, starts, shape, dof):
-  """`plane_geometry` of each (3, 3) start in `starts` (R, 3, 3), stacked (leading R)."""
-  return jax.tree.map(lambda *leaves: jnp.stack(leaves), *[
-      plane_geometry(camera, plane_normal, frame_shape, np.asarray(h, np.float32), shape, dof)
-      for h in starts])
+def plane_geometries(camera, plane_normal, frame_shape, starts, shapes, dof):
+  """`plane_geometry` of each (3, 3) start in `starts` (R, 3, 3) with template shapes `shapes`, stacked."""
+  return jax.tree.map(lambda *leaves: np.stack(leaves), *[
+      jax.tree.map(np.asarray, plane_geometry(camera, plane_normal, frame_shape,
+                                              np.asarray(h, np.float32), shape, dof))
+      for h, shape in zip(starts, shapes)])
 
 
 def element_seeds(key, count: int) -> np.ndarray:
@@ -875,19 +463,35 @@ def _batch(value, batched: bool, name: str) -> list:
   return list(value)
 
 
+def template_pyramids(templates_: list, levels: int) -> list:
+  """The baselines' dense template levels: `levels` arrays (N, h_l, w_l) of equally shaped templates."""
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  pyramids = []
+  for t in templates_:
+    pyramid = [np.ascontiguousarray(t, np.float32)]
+    for _ in range(levels - 1):
+      pyramid.append(cv2.pyrDown(pyramid[-1]))
+    pyramids.append(pyramid)
+  return [np.stack(level) for level in zip(*pyramids)]
+
+
 def align(image, template, init_homography, *, config: TrackConfig = TrackConfig(),
           key=0, camera=None, plane_normal=None, devices=None) -> AlignResult:
   """Registers `template` in `image`, starting from `init_homography`; or a batch of them.
 
   A batch of N alignments is one compiled program (`vmap`): pass images
-  (N, H, W[, 3]), templates (N, h, w[, 3]) and init_homography (N, 3, 3)
-  (all images of one size, all templates of one size); every field of the
-  result gains the leading N axis.  With several devices the batch is split
-  over them (`jax.sharding`), results equal to one device's.
+  (N, H, W[, 3]), templates (N, h, w[, 3]) and init_homography (N, 3, 3);
+  the images may differ in size, and so may the templates (but with a
+  gradient baseline, `TrackConfig.method`, the templates must share one
+  shape).  Every field of the result gains the leading N axis.  With
+  several devices the batch is split over them (`jax.sharding`), results
+  equal to one device's up to float rounding.
 
   Args:
     image: (H, W) grey or (H, W, 3) colour, uint8 or float in [0, 1].
-    template: (h, w) grey or (h, w, 3) colour, same conventions.
+    template: (h, w) grey or (h, w, 3) colour, same conventions; each side
+      `TEMPLATE_SIDES` (8 to 4096) pixels.
     init_homography: (3, 3) template pixel → image pixel (OpenCV convention).
     config: `TrackConfig`.  With motion "plane" the search is over `dof`
       camera-motion parameters from the view in which `init_homography`
@@ -909,42 +513,63 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
   batched = np.ndim(init_homography) == 3
   starts = _batch(init_homography, batched, "init_homography")
   images = _batch(image, batched, "image")
-  templates = _batch(template, batched, "template")
-  if not len(images) == len(templates) == len(starts) >= 1:
+  templates_ = _batch(template, batched, "template")
+  if not len(images) == len(templates_) == len(starts) >= 1:
     raise ValueError(
         f"a batch needs as many images, templates and init homographies (N >= 1), got"
-        f" {len(images)}, {len(templates)} and {len(starts)}")
+        f" {len(images)}, {len(templates_)} and {len(starts)}")
 
   def named(name, i):
     return f"{name}[{i}]" if batched else name
 
-  images = [to_gray(x, named("image", i)) for i, x in enumerate(images)]
-  templates = [to_gray(x, named("template", i)) for i, x in enumerate(templates)]
-  for name, items in (("image", images), ("template", templates)):
-    if any(x.shape != items[0].shape for x in items):
-      raise ValueError(f"every {name} of a batch must have one shape, got"
-                       f" {sorted({x.shape for x in items})}")
-  check_texture(np.std(np.stack(templates), axis=(1, 2)), lambda i: named("template", i))
-  shape, image_shape = templates[0].shape, images[0].shape
-  config = config.for_template(shape)
-  starts = [_check_start(h, shape, named("init_homography", i)) for i, h in enumerate(starts)]
-  check_template_size(shape, config, "template")
-  geometry = None
-  if config.motion == "plane":
-    geometry = plane_geometries(camera, plane_normal, image_shape, starts, shape, config.dof)
-  elif camera is not None or plane_normal is not None:
+  images = [np.asarray(to_gray(x, named("image", i))) for i, x in enumerate(images)]
+  templates_ = [np.asarray(to_gray(x, named("template", i))) for i, x in enumerate(templates_)]
+  if config.method != "pso" and any(t.shape != templates_[0].shape for t in templates_):
+    raise ValueError(f"every template of a batch aligned by {config.method!r} must have one shape,"
+                     f" got {sorted({t.shape for t in templates_})}")
+  check_texture(np.array([np.std(t) for t in templates_]), lambda i: named("template", i))
+  shapes = [t.shape for t in templates_]
+  configs = [config.for_template(shape) for shape in shapes]
+  for i, (shape, c) in enumerate(zip(shapes, configs)):
+    check_template_size(shape, c, named("template", i))
+  starts = [_check_start(h, shape, named("init_homography", i))
+            for i, (h, shape) in enumerate(zip(starts, shapes))]
+  if config.motion != "plane" and (camera is not None or plane_normal is not None):
     raise ValueError("camera and plane_normal apply to motion 'plane' only;"
                      f" got TrackConfig.motion={config.motion!r}")
-  windows = np.array([_window(h, shape, image_shape, config) for h in starts])
-  width, height = windows[:, 2].max(), windows[:, 3].max()  # one window size for the batch
-  x0 = np.minimum(windows[:, 0], image_shape[1] - width)
-  y0 = np.minimum(windows[:, 1], image_shape[0] - height)
-  crops = np.stack([np.asarray(im[y:y + height, x:x + width]) for im, x, y in zip(images, x0, y0)])
-  arguments = (crops, np.stack(templates), np.stack(starts).astype(np.float32),
-               np.stack([x0, y0], axis=-1).astype(np.float32), element_seeds(key, len(starts)),
-               geometry)
+  windows = [_window(h, shape, im.shape, c) for h, shape, im, c in zip(starts, shapes, images, configs)]
+  crops = [im[y:y + hgt, x:x + wid] for im, (x, y, wid, hgt) in zip(images, windows)]
+  for i, (crop, c) in enumerate(zip(crops, configs)):
+    check_image_size(crop.shape, c, named("image", i))
+  size = max(atlas.capacity(sum(h * w for h, w in atlas.level_shapes(crop.shape, c.levels)))
+             for crop, c in zip(crops, configs))
+  pyramids = [atlas.build(crop, c.levels, size) for crop, c in zip(crops, configs)]
+  offsets = np.array([w[:2] for w in windows], np.float32)
+  to_window = np.stack([np.array([[1, 0, -x], [0, 1, -y], [0, 0, 1]], np.float64)
+                        for x, y in offsets])
+  geometry = None
+  if config.motion == "plane":
+    geometry = plane_geometries(camera, plane_normal, images[0].shape, starts, shapes, config.dof)
+    geometry = geometry._replace(camera=(to_window @ geometry.camera).astype(np.float32),
+                                 template_to_frame0=(to_window @ geometry.template_to_frame0)
+                                 .astype(np.float32))
+    bases = np.broadcast_to(np.eye(4, dtype=np.float32), (len(starts), 2, 4, 4))
+  else:
+    bases = np.repeat((to_window @ np.stack(starts))[:, None], 2, axis=1).astype(np.float32)
+  prepared = _stack([templates.prepare(t, c.levels, c.pixels) for t, c in zip(templates_, configs)])
+  arguments = (_stack(pyramids), prepared, bases, geometry, element_seeds(key, len(starts)),
+               offsets)
   mesh = sharding.batch_mesh(devices, len(starts))
-  result = _align(*(arguments if mesh is None else sharding.split(arguments, mesh)), config=config)
+  if mesh is not None:
+    arguments = sharding.split(arguments, mesh)
+  knobs = config.knobs()
+  if config.method == "pso":
+    result = _align(*arguments, knobs, config=config.statics())
+  else:
+    levels = template_pyramids(templates_, configs[0].levels)
+    result = _align_baseline(arguments[0], sharding.split(levels, mesh) if mesh else levels,
+                             *arguments[1:], knobs,
+                             config=dataclasses.replace(config, levels=configs[0].levels).statics())
   if mesh is not None and not all(a.is_fully_addressable for a in jax.tree.leaves(result)):
     result = sharding.to_host(result)  # spread over several processes (jax.distributed)
   if not batched:
@@ -952,23 +577,22 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
   return jax.tree.map(lambda a: a[:len(starts)], result) if len(result.score) > len(starts) else result
 
 
+def _stack(trees: list):
+  """A list of equally structured NumPy pytrees → one with a leading axis."""
+  return jax.tree.map(lambda *leaves: np.stack(leaves), *trees)
+
+
 # Element 0 of every field as one call (indexing each field eagerly cost 2 ms per `align`).
 _first = jax.jit(lambda tree: jax.tree.map(lambda a: a[0], tree))
-
-
-# The window `align` works in is a multiple of this many pixels each way, so
-# that alignments of similar extent share one compiled program.
-_WINDOW_STEP = 64
 
 
 def _window(h, shape, image_shape, config: TrackConfig) -> tuple[int, int, int, int]:
   """(x0, y0, width, height) of the part of the image an alignment can reach.
 
   The start's quad grown by the search radius, the refinement's reach (the
-  radius again) and the pyramid's border, rounded up to `_WINDOW_STEP`; the
-  whole image when the start puts a corner at w <= 0.  Working in the window
-  rather than the image cut `align`'s fixed cost (pyramid and packing)
-  several-fold on 512×512 images.
+  radius again) and the pyramid's border; the whole image when the start
+  puts a corner at w <= 0.  Working in the window rather than the image
+  keeps the host's pyramid small.
   """
   rows, cols = image_shape
   corners = np.array([[0, 0, 1], [shape[1] - 1, 0, 1], [shape[1] - 1, shape[0] - 1, 1],
@@ -977,8 +601,11 @@ def _window(h, shape, image_shape, config: TrackConfig) -> tuple[int, int, int, 
     return 0, 0, cols, rows
   xy = corners[:, :2] / corners[:, 2:]
   margin = 2 * config.search_radius + 2 ** (config.levels + 1)
-  lo = np.floor(xy.min(axis=0) - margin)
-  hi = np.ceil(xy.max(axis=0) + margin)
-  size = np.minimum(np.ceil((hi - lo) / _WINDOW_STEP) * _WINDOW_STEP, [cols, rows]).astype(int)
-  start = np.clip(lo, 0, np.array([cols, rows]) - size).astype(int)
-  return int(start[0]), int(start[1]), int(size[0]), int(size[1])
+  lo = np.clip(np.floor(xy.min(axis=0) - margin), 0, [cols, rows]).astype(int)
+  hi = np.clip(np.ceil(xy.max(axis=0) + margin) + 1, 0, [cols, rows]).astype(int)
+  # At least the pyramid's needs each way: grow an empty or thin window around its centre.
+  least = np.minimum(2 ** config.levels + 1, [cols, rows])
+  grow = np.maximum(least - (hi - lo), 0)
+  lo = np.clip(lo - grow // 2, 0, np.array([cols, rows]) - least)
+  hi = np.maximum(hi, lo + least)
+  return int(lo[0]), int(lo[1]), int(hi[0] - lo[0]), int(hi[1] - lo[1])

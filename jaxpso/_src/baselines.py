@@ -44,6 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxpso._src import atlas
 from jaxpso._src import homography
 from jaxpso._src import sampling
 
@@ -180,18 +181,17 @@ class _Level:
 
   Attributes:
     index: the level (0 = full resolution).
-    quads: the level's packed image.  frame_shape: its (H_l, W_l).
+    image: the image's `atlas.Level`.
     template: (h_l, w_l) template at this level.
     grid: (h_l·w_l, 2) template pixel centres.
     coarsest: whether the registration starts at this level.
   """
 
-  def __init__(self, index, quads, frame_shape, template, to_h, full_shape, start, loss_at,
+  def __init__(self, index, image: atlas.Level, template, to_h, full_shape, start, loss_at,
                coarsest=False):
     self.index = index
     self.coarsest = coarsest
-    self.quads = quads
-    self.frame_shape = frame_shape
+    self.image = image
     self.template = template
     self.grid = sampling.template_grid(template.shape).reshape(-1, 2)
     self._to_h = to_h
@@ -202,8 +202,13 @@ class _Level:
   def loss(self, u) -> jax.Array:
     """() the registration loss at this level for parameters u (D,)."""
     h = self.h(u)
-    patch, mask = sampling.sample_quads(self.quads, self.frame_shape, h, self.template.shape)
-    return self._loss_at(self.index, h, patch, mask)
+    return self._loss_at(self.index, h, *self.sample(h))
+
+  def sample(self, h, points=None, shape=None):
+    """The image (shape (h_l, w_l) by default) at `points` (the level's grid) mapped by h, and the mask."""
+    shape = self.template.shape if shape is None else shape
+    patch, mask = self.image.sample(h, self.grid if points is None else points)
+    return patch.reshape(shape), mask.reshape(shape)
 
   def h(self, u) -> jax.Array:
     """(D,) parameters → (3, 3) template → image homography at this level."""
@@ -211,8 +216,8 @@ class _Level:
 
   def warp(self, h):
     """The image and its gradient at the grid mapped by h: (h_l, w_l) each, and the mask."""
-    return sampling.sample_with_gradient(self.quads, self.frame_shape, h,
-                                         sampling.template_grid(self.template.shape))
+    *sampled, _ = self.image.sample_with_gradient(h, self.grid)
+    return tuple(a.reshape(self.template.shape) for a in sampled)
 
   def point_jacobian(self, h, increment) -> jax.Array:
     """(N, 2, 8) derivative of the points h·increment(δ)·x at δ = 0."""
@@ -347,8 +352,7 @@ def _inverse_compositional(level: _Level, u, iterations):
   hessian = jacobian.T @ jacobian
 
   def update(u, state):
-    h = level.h(u)
-    patch, mask = sampling.sample_quads(level.quads, level.frame_shape, h, level.template.shape)
+    patch, mask = level.sample(level.h(u))
     residual = jnp.where(mask, patch - level.template, 0.0).reshape(-1)
     delta = _solve(hessian, jacobian.T @ residual)
     return level.compose(u, homography.inverse(increment(delta))), state, 1
@@ -412,6 +416,7 @@ def _hyperplane(level: _Level, u, iterations):
     grams.append(differences.T @ differences)
     correlations.append(differences.T @ deltas)
   points = side[0] * side[1]
+  sample_grid = sampling.template_grid(side).reshape(-1, 2)
   eye = jnp.eye(points, dtype=template.dtype)
 
   def fit(gram, correlation, valid):
@@ -427,8 +432,7 @@ def _hyperplane(level: _Level, u, iterations):
   grams, correlations = jnp.stack(grams), jnp.stack(correlations)
 
   def update(u, k):
-    patch, mask = sampling.sample_quads(level.quads, level.frame_shape, level.h(u) @ to_points,
-                                        side)
+    patch, mask = level.sample(level.h(u) @ to_points, sample_grid, side)
     valid = mask.reshape(-1)
     current = jax.lax.cond(jnp.all(valid), lambda: predictors[k],
                            lambda: fit(grams[k], correlations[k], valid.astype(template.dtype)))
@@ -510,26 +514,23 @@ def _iterate(update, u, state, iterations: int, tolerance: float):
   return u, count, evaluations
 
 
-def register(method: str, frame: list, frame_shapes: list, template_pyramid: list, to_h, dim: int,
+def register(method: str, image: atlas.Atlas, template_pyramid: list, to_h, dim: int,
              loss_at, *, similarity: str, levels: int, iterations: int):
   """Coarse-to-fine gradient alignment from u = 0, traceable inside `jax.jit`.
 
-  Static: method, similarity, levels, iterations, frame_shapes.
+  Static: method, similarity, levels, iterations, the template's shape.
 
   Args:
     method: one of `SUPPORTED`.
-    frame: `levels` packed images (`sampling.pack_quads` of each Gaussian
-      pyramid level of the image, level 0 = full resolution), as made by
-      `align.prepare_frame`.
-    frame_shapes: their (H_l, W_l).
-    template_pyramid: `levels` (h_l, w_l) template levels
-      (`sampling.gaussian_pyramid` of the template).
+    image: the image's pyramid (`atlas.Atlas`, unbatched), at least `levels` levels.
+    template_pyramid: `levels` (h_l, w_l) template levels (the template's
+      Gaussian pyramid).
     to_h: u (dim,) → (3, 3) template → image homography at full resolution.
     dim: number of motion parameters: 8 is motion "homography", fewer
       "plane" (which only "fa", "adam" and "lbfgs" support).
-    loss_at: (level, h (…, 3, 3) level homographies, patches, mask from
-      `sampling.sample_quads`) → the loss to minimise at that level (+inf
-      where the warp is not admissible).
+    loss_at: (level, h (3, 3) level homography, patch (h_l, w_l), mask)
+      → the loss to minimise at that level (+inf where the warp is not
+      admissible).
     similarity: the similarity `loss_at` measures (checked against `SUPPORTED`).
     levels: number of pyramid levels; `pyramid_levels` of them are aligned,
       the coarsest first.
@@ -547,16 +548,16 @@ def register(method: str, frame: list, frame_shapes: list, template_pyramid: lis
   full_shape = template_pyramid[0].shape
   start = to_h(jnp.zeros(dim, jnp.float32))
   start_corners = _corners(start, full_shape)
-  finest = _Level(0, frame[0], frame_shapes[0], template_pyramid[0], to_h, full_shape,
+  finest = _Level(0, atlas.level(image, 0), template_pyramid[0], to_h, full_shape,
                   start_corners, loss_at)
   if method == "ecc":
-    u, count = _register_ecc(finest, start, iterations)
+    u, count = _register_ecc(image, finest, start, iterations)
     return u, finest.loss(u), count, count
   u = jnp.zeros(dim, jnp.float32)
   total_iterations = total_evaluations = jnp.zeros([], jnp.int32)
   used = pyramid_levels(method, full_shape, levels)
   for index in reversed(range(used)):
-    level = _Level(index, frame[index], frame_shapes[index], template_pyramid[index], to_h,
+    level = _Level(index, atlas.level(image, index), template_pyramid[index], to_h,
                    full_shape, start_corners, loss_at, coarsest=index == used - 1)
     update, state = _SOLVERS[method](level, u, iterations)
     u, count, evaluations = _iterate(update, u, state, iterations, _TOLERANCE * 2.0 ** index)
@@ -565,28 +566,20 @@ def register(method: str, frame: list, frame_shapes: list, template_pyramid: lis
   return u, finest.loss(u), total_iterations, total_evaluations + 1
 
 
-def _unpack_quads(quads, shape) -> jax.Array:
-  """The (H, W) image `sampling.pack_quads` packed into `quads` ((H-1)·(W-1), 4)."""
-  rows, cols = shape
-  q = quads.reshape(rows - 1, cols - 1, 4)
-  top = jnp.concatenate([q[:, :, 0], q[:, -1:, 1]], axis=1)
-  bottom = jnp.concatenate([q[-1, :, 2], q[-1, -1:, 3]])
-  return jnp.concatenate([top, bottom[None]], axis=0)
-
-
-def _register_ecc(finest: _Level, start, iterations: int):
+def _register_ecc(image: atlas.Atlas, finest: _Level, start, iterations: int):
   """`ecc` as a host callback on the full-resolution image and template → (u (8,), count)."""
   shapes = (jax.ShapeDtypeStruct((3, 3), jnp.float32), jax.ShapeDtypeStruct((), jnp.bool_),
             jax.ShapeDtypeStruct((), jnp.int32))
   h, _, count = jax.pure_callback(
-      functools.partial(_ecc_host, iterations=iterations), shapes,
-      _unpack_quads(finest.quads, finest.frame_shape), finest.template,
-      _normalized(start), vmap_method="sequential")
+      functools.partial(_ecc_host, iterations=iterations), shapes, image.pixels, image.levels[0],
+      finest.template, _normalized(start), vmap_method="sequential")
   return finest.parameters(h), count
 
 
-def _ecc_host(image, template, start, *, iterations: int):
-  """`ecc` with the callback's result types."""
+def _ecc_host(pixels, geometry, template, start, *, iterations: int):
+  """`ecc` of the atlas's full-resolution level, with the callback's result types."""
+  offset, width, height = (int(v) for v in geometry)
+  image = np.asarray(pixels)[offset:offset + width * height].reshape(height, width)
   h, converged, count = ecc(image, template, start, iterations=iterations)
   return h, np.bool_(converged), np.int32(count)
 

@@ -46,6 +46,15 @@ class Plane(NamedTuple):
   unit: jax.Array
 
 
+def corners(shape) -> jax.Array:
+  """(4, 2) corners TL, TR, BR, BL of a template of `shape` (h, w), static or a traced (2,) array."""
+  h, w = shape[0], shape[1]
+  zero = jnp.zeros_like(jnp.asarray(w, jnp.float32))
+  right, bottom = jnp.asarray(w, jnp.float32) - 1, jnp.asarray(h, jnp.float32) - 1
+  return jnp.stack([jnp.stack([zero, zero]), jnp.stack([right, zero]),
+                    jnp.stack([right, bottom]), jnp.stack([zero, bottom])])
+
+
 def dimension(motion: str, dof: int) -> int:
   """Number of search parameters of a motion model."""
   return 8 if motion == "homography" else dof
@@ -89,7 +98,7 @@ def to_homography(u, base, geometry: Plane | None, shape, motion: str, dof: int)
     u: (…, D) parameters (`dimension(motion, dof)`).
     base: (3, 3) start homography ("homography") or (4, 4) base pose ("plane").
     geometry: `Plane` for "plane", else None.
-    shape: template (h, w).
+    shape: template (h, w), static or a traced (2,) array.
     motion: "homography" or "plane".
     dof: pose parameters of "plane".
 
@@ -97,11 +106,31 @@ def to_homography(u, base, geometry: Plane | None, shape, motion: str, dof: int)
     (…, 3, 3) homographies, h[2, 2] not normalised.
   """
   if motion == "homography":
-    rect = homography.rect_corners(shape)
-    quad, _ = homography.apply_to_points(base, rect)
-    moved = quad + u.reshape(u.shape[:-1] + (4, 2))
-    return homography.homography_from_corners(rect, moved)
+    return rect_to_quad(moved_corners(u, base, shape), shape)
   return pose_to_homography(plane_pose(u, base, geometry, dof), geometry)
+
+
+def moved_corners(u, base, shape) -> jax.Array:
+  """(…, 4, 2) corners of motion "homography": where `base` (3, 3) puts the template's, plus u (…, 8)."""
+  quad, _ = homography.apply_to_points(base, corners(shape))
+  return quad + u.reshape(u.shape[:-1] + (4, 2))
+
+
+def rect_to_quad(quad, shape) -> jax.Array:
+  """(…, 3, 3) homography from the template's rectangle (h, w) = `shape` onto `quad` (…, 4, 2).
+
+  `homography.homography_from_corners` for a source that is the template's
+  own rectangle: the rectangle maps onto the unit square by a scaling, so
+  no inverse is needed.  The quad is centred and scaled to unit spread
+  first, to keep float32 in range.  Scale: w > 0 over the template for a
+  convex quad in the template's corner order.
+  """
+  centre, spread, unit = homography._normalize_quad(quad)
+  core = homography._square_to_quad(unit)
+  width, height = jnp.asarray(shape[1], quad.dtype) - 1, jnp.asarray(shape[0], quad.dtype) - 1
+  core = core * jnp.stack([1 / width, 1 / height, jnp.ones_like(width)])
+  top = spread[..., None, None] * core[..., :2, :] + centre[..., :, None] * core[..., 2:, :]
+  return jnp.concatenate([top, core[..., 2:, :]], axis=-2)
 
 
 # A candidate whose template area changes by more than this factor either way
@@ -129,16 +158,20 @@ def admissible(h, shape) -> jax.Array:
   template's either way.
 
   Args:
-    h: (…, 3, 3) template → frame homographies.  shape: template (h, w).
+    h: (…, 3, 3) template → frame homographies.  shape: template (h, w),
+      static or a traced (2,) array.
 
   Returns:
     (…) bool.
   """
-  rect = homography.rect_corners(shape)
-  quad, w = homography.apply_to_points(h, rect)
-  area = 0.5 * jnp.sum(quad[..., 0] * jnp.roll(quad, -1, axis=-2)[..., 1]
-                       - jnp.roll(quad, -1, axis=-2)[..., 0] * quad[..., 1], axis=-1)
-  template_area = (shape[0] - 1.0) * (shape[1] - 1.0)
-  ratio = area / template_area
-  return (jnp.all(w > 0, axis=-1) & jnp.all(corner_turns(quad) > 0, axis=-1)
-          & (ratio > 1 / MAX_AREA_RATIO) & (ratio < MAX_AREA_RATIO))
+  quad, w = homography.apply_to_points(h, corners(shape))
+  return jnp.all(w > 0, axis=-1) & admissible_quad(quad, shape)
+
+
+def admissible_quad(quad, shape) -> jax.Array:
+  """`admissible` for quads (…, 4, 2) known to have w > 0 (motion "homography" builds them so)."""
+  turns = corner_turns(quad)
+  # The shoelace area is half the sum of the cross products about one corner.
+  area = 0.5 * (turns[..., 0] + turns[..., 2])
+  ratio = area / ((shape[0] - 1.0) * (shape[1] - 1.0))
+  return jnp.all(turns > 0, axis=-1) & (ratio > 1 / MAX_AREA_RATIO) & (ratio < MAX_AREA_RATIO)

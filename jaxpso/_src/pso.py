@@ -6,10 +6,15 @@ iterations with `lax.scan` and returns the per-iteration best loss (and
 optionally the positions) for plots; `init` and `step` are the pure pieces for
 users who drive the loop themselves.
 
-Static settings (swarm size, variant, topology, termination, boundary
-handling) live in the hashable `PSOConfig`; the coefficients (inertia
-schedule, c1, c2, constriction, velocity clamp) are the `PSOHParams` pytree
-of arrays, so changing them never recompiles and they can be `vmap`ped.
+All settings live in the hashable `PSOConfig`.  The structural ones (swarm
+size, variant, topology, neighbours, informants, boundary handling, grid,
+batched loss, generator) are static: a change recompiles.  The termination
+settings (max_iterations, patience, tolerance, target_loss, stop_weights)
+reach the compiled loop as arrays, `PSOLimits`: `run` compiles once for all
+of them (`trace` once per `max_iterations`, its scan length).  The
+coefficients (inertia schedule, c1, c2, constriction, velocity clamp) are the
+`PSOHParams` pytree of arrays, so changing them never recompiles and they can
+be `vmap`ped.
 
 Velocity update of the inertia/constriction family, with r1, r2 ~ U(0, 1)
 drawn per particle and per dimension:
@@ -94,7 +99,13 @@ class Status(enum.IntEnum):
 
 @dataclasses.dataclass(frozen=True)
 class PSOConfig:
-  """Static settings of a swarm; a change recompiles.
+  """Settings of a swarm.
+
+  The termination settings (`max_iterations`, `patience`, `tolerance`,
+  `target_loss`, `stop_weights`) are runtime values: `run` compiles for
+  `static()` and passes `limits()` as arrays, so changing them does not
+  recompile (`trace` recompiles for a new `max_iterations`, its scan
+  length).  Every other setting is static: a change recompiles.
 
   Attributes:
     swarm_size: number of particles (>= 2).
@@ -184,6 +195,63 @@ class PSOConfig:
       if steps.ndim != 1 or not np.all(np.isfinite(steps) & (steps > 0)):
         raise ValueError(f"PSOConfig.grid_step must be positive and finite, got {self.grid_step!r}")
       object.__setattr__(self, "grid_step", tuple(float(s) for s in steps))
+
+  def limits(self) -> PSOLimits:
+    """The termination settings as `PSOLimits` (NumPy scalars: no device dispatch)."""
+    return PSOLimits(
+        max_iterations=np.int32(self.max_iterations),
+        patience=np.int32(_NO_PATIENCE if self.patience is None else self.patience),
+        tolerance=np.float32(self.tolerance),
+        target_loss=np.float32(-np.inf if self.target_loss is None else self.target_loss),
+        stop_weights=np.asarray(self.stop_weights or (0.0, 0.0, 0.0), np.float32))
+
+  def static(self) -> PSOConfig:
+    """This config with the termination settings at their defaults.
+
+    Configs that differ only in those share it, and so one compiled program.
+    """
+    return dataclasses.replace(self, **_RUNTIME_DEFAULTS)
+
+
+class PSOLimits(NamedTuple):
+  """Termination settings of a swarm, as arrays (a change never recompiles `run`).
+
+  Attributes:
+    max_iterations: () int32 iterations after the initial evaluation; also
+      the length of the linear inertia schedule and of the "dynamic"
+      topology's growth.
+    patience: () int32 iterations without sufficient improvement that stop
+      the swarm; 2**31 − 1 disables.
+    tolerance: () float32 relative improvement that resets the stagnation count.
+    target_loss: () float32 stop once the best loss is <= this; −inf disables.
+    stop_weights: (3,) float32 weights (a, b, c) of the combined criterion
+      (see `PSOConfig`); zeros disable.
+  """
+  max_iterations: jax.Array
+  patience: jax.Array
+  tolerance: jax.Array
+  target_loss: jax.Array
+  stop_weights: jax.Array
+
+
+_RUNTIME_DEFAULTS = {f.name: f.default for f in dataclasses.fields(PSOConfig)
+                     if f.name in PSOLimits._fields}
+_NO_PATIENCE = np.iinfo(np.int32).max  # the patience of `PSOConfig(patience=None)`
+
+
+def _reciprocal(count):
+  """1 / count in float32, for a () int32 limit: t / count is computed as t · (1 / count).
+
+  XLA computed the divisions by the formerly static limits so; the product
+  keeps the results bit-identical to theirs.
+  """
+  return 1 / jnp.asarray(count, jnp.float32)
+
+
+def _as_limits(limits: PSOLimits) -> PSOLimits:
+  """`limits` with the documented dtypes (values may be traced)."""
+  dtypes = (jnp.int32, jnp.int32, jnp.float32, jnp.float32, jnp.float32)
+  return PSOLimits(*(jnp.asarray(v, t) for v, t in zip(limits, dtypes)))
 
 
 class PSOHParams(NamedTuple):
@@ -476,7 +544,7 @@ def _ring_window_best(best_loss, radius):
   return jnp.where(v0 <= v1, index[level, start], index[level, end])
 
 
-def _neighbourhood_best(state: PSOState, config: PSOConfig):
+def _neighbourhood_best(state: PSOState, limits: PSOLimits, config: PSOConfig):
   """(d, n) best position of each particle's neighbourhood."""
   n = config.swarm_size
   best_loss = state.best_loss
@@ -494,7 +562,7 @@ def _neighbourhood_best(state: PSOState, config: PSOConfig):
   elif topology == "von_neumann":
     index = _best_of(jnp.asarray(_von_neumann_table(n)), best_loss)
   elif topology == "dynamic":
-    growth = state.iteration.astype(jnp.float32) / config.max_iterations
+    growth = state.iteration.astype(jnp.float32) * _reciprocal(limits.max_iterations)
     radius = 1 + jnp.floor(growth * (n // 2)).astype(jnp.int32)
     index = _ring_window_best(best_loss, radius)
   else:  # random
@@ -537,15 +605,16 @@ def _confine(seed, iteration, x, v, lower, upper, config: PSOConfig):
   return jnp.where(outside, fresh, x), jnp.where(outside, 0.0, v)
 
 
-def _inertia(hparams: PSOHParams, iteration, config: PSOConfig):
-  fraction = iteration.astype(jnp.float32) / config.max_iterations
+def _inertia(hparams: PSOHParams, iteration, limits: PSOLimits):
+  fraction = iteration.astype(jnp.float32) * _reciprocal(limits.max_iterations)
   return hparams.inertia_start + (hparams.inertia_end - hparams.inertia_start) * fraction
 
 
-def _velocity(state: PSOState, local, hparams: PSOHParams, config: PSOConfig):
+def _velocity(state: PSOState, local, hparams: PSOHParams, limits: PSOLimits,
+              config: PSOConfig):
   """New velocities (d, n) of the configured variant."""
   x, dtype = state.x, state.x.dtype
-  w = _inertia(hparams, state.iteration, config).astype(dtype)
+  w = _inertia(hparams, state.iteration, limits).astype(dtype)
   if config.variant != "spso2011":
     r1, r2 = _uniform_pair(state.seed, state.iteration, _VELOCITY, x.shape, dtype, config.rng)
     pull = hparams.c1 * r1 * (state.best_x - x) + hparams.c2 * r2 * (local - x)
@@ -572,7 +641,8 @@ def _random_indices(seed, iteration, shape, config: PSOConfig):
   return jnp.minimum((draw * config.swarm_size).astype(jnp.int32), config.swarm_size - 1)
 
 
-def _update_bests(state: PSOState, x, v, loss, config: PSOConfig) -> PSOState:
+def _update_bests(state: PSOState, x, v, loss, limits: PSOLimits,
+                  config: PSOConfig) -> PSOState:
   improved = loss < state.best_loss
   best_x = jnp.where(improved[None, :], x, state.best_x)
   best_loss = jnp.where(improved, loss, state.best_loss)
@@ -580,7 +650,7 @@ def _update_bests(state: PSOState, x, v, loss, config: PSOConfig) -> PSOState:
   new_loss = best_loss[i]
   finite = jnp.isfinite(state.swarm_loss)
   old = jnp.where(finite, state.swarm_loss, 0.0)
-  threshold = config.tolerance * jnp.maximum(1.0, jnp.abs(old))
+  threshold = limits.tolerance * jnp.maximum(1.0, jnp.abs(old))
   # The first finite best after +inf always counts as progress.
   gained = jnp.where(finite, old - new_loss > threshold, jnp.isfinite(new_loss))
   informants = state.informants
@@ -595,10 +665,11 @@ def _update_bests(state: PSOState, x, v, loss, config: PSOConfig) -> PSOState:
       num_evaluations=state.num_evaluations + config.swarm_size, seed=state.seed)
 
 
-def _step(state: PSOState, loss_fn, lower, upper, args, hparams, config: PSOConfig) -> PSOState:
+def _step(state: PSOState, loss_fn, lower, upper, args, hparams, limits: PSOLimits,
+          config: PSOConfig) -> PSOState:
   lower, upper = lower[:, None], upper[:, None]
-  local = _neighbourhood_best(state, config)
-  v = _velocity(state, local, hparams, config)
+  local = _neighbourhood_best(state, limits, config)
+  v = _velocity(state, local, hparams, limits, config)
   # Clamping with selects: jnp.clip's NaN-propagating min/max halved the
   # throughput of the whole step on the CPU (benchmarks/pso_throughput.py).
   limit = hparams.velocity_clamp * (upper - lower)
@@ -609,7 +680,7 @@ def _step(state: PSOState, loss_fn, lower, upper, args, hparams, config: PSOConf
   # Materialise the move before the loss, which would otherwise absorb it.
   x, v = jax.lax.optimization_barrier((_snap(x, lower, upper, config), v))
   loss = _evaluate(loss_fn, x, args, config)
-  return _update_bests(state, x, v, loss, config)
+  return _update_bests(state, x, v, loss, limits, config)
 
 
 def _init(key, loss_fn, lower, upper, args, config: PSOConfig, positions, velocities,
@@ -647,27 +718,24 @@ def _init(key, loss_fn, lower, upper, args, config: PSOConfig, positions, veloci
 
 
 # --------------------------------------------------------------- termination
-def _stopped(state: PSOState, config: PSOConfig):
-  """Bool flags (max iterations, stagnation, target, combined)."""
-  by_iterations = state.iteration >= config.max_iterations
-  by_stall = (jnp.asarray(False) if config.patience is None
-              else state.stall >= config.patience)
-  by_target = (jnp.asarray(False) if config.target_loss is None
-               else state.swarm_loss <= config.target_loss)
-  if config.stop_weights is None:
-    by_combination = jnp.asarray(False)
-  else:
-    a, b, c = config.stop_weights
-    score = a * state.iteration / config.max_iterations
-    if config.patience is not None:
-      score = score + b * state.stall / config.patience
-    score = score + c * by_target
-    by_combination = score >= 1.0
-  return by_iterations, by_stall, by_target, by_combination
+def _stopped(state: PSOState, limits: PSOLimits):
+  """Bool flags (max iterations, stagnation, target, combined).
+
+  A disabled criterion never fires: the stall never reaches 2**31 − 1, the
+  best loss is never −inf (non-finite losses count as +inf) and zero weights
+  score 0.
+  """
+  by_iterations = state.iteration >= limits.max_iterations
+  by_stall = state.stall >= limits.patience
+  by_target = state.swarm_loss <= limits.target_loss
+  a, b, c = limits.stop_weights
+  score = (a * state.iteration * _reciprocal(limits.max_iterations)
+           + b * state.stall * _reciprocal(limits.patience) + c * by_target)
+  return by_iterations, by_stall, by_target, score >= 1.0
 
 
-def _status(state: PSOState, config: PSOConfig):
-  by_iterations, by_stall, by_target, by_combination = _stopped(state, config)
+def _status(state: PSOState, limits: PSOLimits):
+  by_iterations, by_stall, by_target, by_combination = _stopped(state, limits)
   status = jnp.select(
       [~jnp.isfinite(state.swarm_loss), by_target, by_stall, by_combination],
       [Status.NON_FINITE, Status.TARGET_REACHED, Status.STAGNATED, Status.COMBINED],
@@ -675,8 +743,8 @@ def _status(state: PSOState, config: PSOConfig):
   return status.astype(jnp.int32)
 
 
-def _result(state: PSOState, config: PSOConfig) -> PSOResult:
-  return PSOResult(x=state.swarm_x, loss=state.swarm_loss, status=_status(state, config),
+def _result(state: PSOState, limits: PSOLimits) -> PSOResult:
+  return PSOResult(x=state.swarm_x, loss=state.swarm_loss, status=_status(state, limits),
                    num_iterations=state.iteration, num_evaluations=state.num_evaluations,
                    state=state)
 
@@ -769,7 +837,7 @@ def step(state: PSOState, loss_fn: Callable, lower, upper, args: Any = None, *,
     The next `PSOState`.
   """
   lower, upper, hparams, *_ = _prepare(lower, upper, hparams, config, None, None, None, None)
-  return _step(state, loss_fn, lower, upper, args, hparams, config)
+  return _step(state, loss_fn, lower, upper, args, hparams, config.limits(), config)
 
 
 def _split_swarm(state: PSOState, mesh) -> PSOState:
@@ -787,19 +855,42 @@ def _split_swarm(state: PSOState, mesh) -> PSOState:
   return jax.lax.with_sharding_constraint(state, layout)
 
 
-@functools.partial(jax.jit, static_argnames=("loss_fn", "config", "mesh"))
-def _run(key, lower, upper, args, hparams, positions, velocities, centre, scale, *,
-         loss_fn, config, mesh=None):
+def _run_impl(key, lower, upper, args, hparams, positions, velocities, centre, scale, *,
+              loss_fn, config, mesh=None, limits=None):
+  """`run` on validated arrays, un-jitted: callable inside other compiled programs.
+
+  Args:
+    key, lower, upper, args, hparams: as for `run`, checked by `_prepare`.
+    positions, velocities, centre, scale: warm start (None each if unused).
+    loss_fn: as for `run`.
+    config: the static settings; its termination settings are used only
+      when `limits` is None.
+    mesh: the `Mesh` the particles are split over, or None.
+    limits: `PSOLimits` (values may be traced); `config.limits()` if None.
+
+  Returns:
+    `PSOResult`.
+  """
+  limits = _as_limits(config.limits() if limits is None else limits)
   state = _split_swarm(
       _init(key, loss_fn, lower, upper, args, config, positions, velocities, centre, scale), mesh)
 
   def running(s):
-    return ~functools.reduce(jnp.logical_or, _stopped(s, config))
+    return ~functools.reduce(jnp.logical_or, _stopped(s, limits))
 
   def body(s):
-    return _split_swarm(_step(s, loss_fn, lower, upper, args, hparams, config), mesh)
+    return _split_swarm(_step(s, loss_fn, lower, upper, args, hparams, limits, config), mesh)
 
-  return _result(jax.lax.while_loop(running, body, state), config)
+  return _result(jax.lax.while_loop(running, body, state), limits)
+
+
+_run = jax.jit(_run_impl, static_argnames=("loss_fn", "config", "mesh"))
+
+
+@functools.lru_cache(maxsize=256)
+def _static_and_limits(config: PSOConfig) -> tuple[PSOConfig, PSOLimits]:
+  """`config.static()` and `config.limits()`, cached: building them cost 5 % of a short `run`."""
+  return config.static(), config.limits()
 
 
 def _swarm_mesh(devices, swarm_size: int):
@@ -821,8 +912,8 @@ def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
   weighted combination `stop_weights`; `status` says which (`Status`).
   Non-finite losses never become a best; if no finite loss was ever seen the
   status is `Status.NON_FINITE`.  The same key gives a bit-identical result.
-  Compiled once per (loss_fn, config, shapes): new `args`, bounds or
-  `hparams` do not recompile.
+  Compiled once per (loss_fn, `config.static()`, shapes): new `args`,
+  bounds, `hparams` or termination settings do not recompile.
 
   Args:
     key: PRNG key or int seed.
@@ -830,7 +921,7 @@ def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
     lower: (d,) lower bounds.
     upper: (d,) upper bounds.
     args: pytree of data for `loss_fn`.
-    config: static settings.
+    config: settings; the termination ones reach the loop as `limits()`.
     hparams: coefficients; `default_hparams(config.variant)` if None.
     positions, velocities, centre, scale: warm start, as for `init`.
     devices: the `jax.Device`s the swarm's particles are split over (XLA's
@@ -852,22 +943,27 @@ def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
   """
   lower, upper, hparams, positions, velocities, centre, scale = _prepare(
       lower, upper, hparams, config, positions, velocities, centre, scale)
+  static, limits = _static_and_limits(config)
   return _run(key, lower, upper, args, hparams, positions, velocities, centre, scale,
-              loss_fn=loss_fn, config=config, mesh=_swarm_mesh(devices, config.swarm_size))
+              loss_fn=loss_fn, config=static, limits=limits,
+              mesh=_swarm_mesh(devices, config.swarm_size))
 
 
 @functools.partial(jax.jit, static_argnames=("loss_fn", "config", "keep_positions"))
-def _trace(key, lower, upper, args, hparams, positions, velocities, centre, scale, *,
+def _trace(key, lower, upper, args, hparams, positions, velocities, centre, scale, limits, *,
            loss_fn, config, keep_positions):
+  # The scan length, config.max_iterations, is static: the schedules use it as a constant.
+  limits = _as_limits(limits._replace(max_iterations=config.max_iterations))
   state = _init(key, loss_fn, lower, upper, args, config, positions, velocities, centre, scale)
 
   def body(s, _):
-    s = _step(s, loss_fn, lower, upper, args, hparams, config)
+    s = _step(s, loss_fn, lower, upper, args, hparams, limits, config)
     return s, (s.swarm_loss, s.x if keep_positions else None)
 
   state, (best, xs) = jax.lax.scan(body, state, None, length=config.max_iterations)
   xs = None if xs is None else jnp.swapaxes(xs, 1, 2)  # (T, d, n) -> (T, n, d)
-  fixed_length = dataclasses.replace(config, patience=None, stop_weights=None)
+  fixed_length = limits._replace(patience=jnp.int32(_NO_PATIENCE),
+                                 stop_weights=jnp.zeros(3, jnp.float32))
   return _result(state, fixed_length), PSOTrace(best_loss=best, x=xs)
 
 
@@ -880,6 +976,8 @@ def trace(key, loss_fn: Callable, lower, upper, args: Any = None, *,
   The other termination criteria do not stop the scan; the status reports
   the target or non-finite outcome, else `Status.MAX_ITERATIONS`.  With only
   `max_iterations` active, `run` and `trace` give bit-identical results.
+  Compiled once per (loss_fn, `config.static()`, `max_iterations`, shapes,
+  `keep_positions`): the other termination settings do not recompile.
 
   Args:
     key, loss_fn, lower, upper, args, config, hparams: as for `run`.
@@ -891,5 +989,6 @@ def trace(key, loss_fn: Callable, lower, upper, args: Any = None, *,
   """
   lower, upper, hparams, positions, velocities, centre, scale = _prepare(
       lower, upper, hparams, config, positions, velocities, centre, scale)
+  static = dataclasses.replace(config.static(), max_iterations=config.max_iterations)
   return _trace(key, lower, upper, args, hparams, positions, velocities, centre, scale,
-                loss_fn=loss_fn, config=config, keep_positions=keep_positions)
+                config.limits(), loss_fn=loss_fn, config=static, keep_positions=keep_positions)

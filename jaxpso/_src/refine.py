@@ -1,5 +1,4 @@
-"""Gauss–Newton refinement after the swarm, with the template's intensities
-remapped to the image's (the hybrid's gradient half).
+"""Gauss–Newton refinement with the template's intensities remapped to the image's (the hybrid's gradient half).
 
 The swarm lands in the basin; a few Levenberg–Marquardt steps on the sum of
 squared differences between the warped image and a photometrically adapted
@@ -12,118 +11,87 @@ maximised, so the refinement keeps its invariances:
 * "ncc": T̃ = a·T + b, the least-squares gain and bias;
 * "ssd": T̃ = T.
 
-T̃ is re-estimated at every step, and a step is accepted only when it
-improves the similarity itself, not the SSD.  The Jacobian is
-the image gradient (central differences, read from the same packed table) at
-the warped points times the warped points' derivative with respect to the
-homography (closed form) times the homography's derivative with respect to
-the motion parameters (forward mode), so any motion model of
-`jaxpso._src.motion` refines alike.
+T̃ is re-estimated at every step from sums over the template's points
+(`Adaptation`), and a step is accepted only when it improves the similarity
+itself, not the SSD.  The caller linearises (it knows the image and the
+template, `jaxpso._src.register`); this module holds the photometric model
+and the damped loop.
 """
 
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
 
-from jaxpso._src import sampling
+from jaxpso._src import measures
 
 # Damping of the first step, relative to the diagonal of JᵀJ; multiplied by
 # _GROW after a rejected step and by _SHRINK after an accepted one.
 _DAMPING, _GROW, _SHRINK = 1e-3, 10.0, 0.3
 # Stop after this many rejected steps in a row (the damping then barely
-# changes the step any more: with the old rule, damping > 1e6, most coarse
-# levels spent 5–8 of their 10 steps on rejections).
+# changes the step any more).
 _MAX_REJECTED = 3
 
 
-def adapted_template(template, bin_weights, patch, mask, similarity: str):
-  """T̃ (h, w): the template in the image's intensities.
+class Adaptation(NamedTuple):
+  """What T̃ needs, summed over the valid points: for "mi" the image's intensity per template bin.
 
-  Args:
-    template: (h, w) template.
-    bin_weights: (h, w, bins) soft bins of the template (used by "mi").
-    patch: (h, w) image sampled at the current warp.
-    mask: (h, w) bool validity of `patch`.
-    similarity: "mi", "ncc" or "ssd".
+  Attributes:
+    per_bin: (2, bins) Σ m·I·β(T) and Σ m·β(T) ("mi"; zeros otherwise).
   """
+  per_bin: jax.Array
+
+
+def empty_adaptation(bins: int) -> Adaptation:
+  return Adaptation(jnp.zeros((2, bins), jnp.float32))
+
+
+def adapt(adaptation: Adaptation, template_bins, patch, mask) -> Adaptation:
+  """Adds a chunk ("mi"): template bin weights (bins, c), patch (c,) and mask (c,)."""
   m = mask.astype(patch.dtype)
-  count = jnp.maximum(jnp.sum(m), 1.0)
-  mean_i = jnp.sum(m * patch) / count
+  return Adaptation(adaptation.per_bin + jnp.stack([patch * m, m]) @ template_bins.T)
+
+
+def adapted_template(similarity: str, stats, adaptation: Adaptation, template, template_bins):
+  """T̃ (c,) of a chunk of template values (c,) (their bin weights (bins, c) for "mi").
+
+  `stats` are the chunk loop's similarity statistics (the means, gain and
+  bias of "ncc"), `adaptation` its per-bin sums.
+  """
   if similarity == "mi":
+    sums, counts = adaptation.per_bin
+    mean = jnp.sum(sums) / jnp.maximum(jnp.sum(counts), 1.0)
     # A pseudo-count of one pixel at the mean intensity keeps empty bins finite.
-    bins = bin_weights.shape[-1]
-    sums = jnp.stack([patch * m, m]).reshape(2, -1) @ bin_weights.reshape(-1, bins)
-    per_bin = (sums[0] + mean_i) / (sums[1] + 1.0)
-    return bin_weights @ per_bin
+    return ((sums + mean) / (counts + 1.0)) @ template_bins
   if similarity == "ncc":
-    mean_t = jnp.sum(m * template) / count
-    dt = (template - mean_t) * m
-    var_t = jnp.sum(dt * dt)
-    gain = jnp.where(var_t > 1e-12, jnp.sum(dt * patch) / jnp.where(var_t > 1e-12, var_t, 1.0), 0.0)
+    _, mean_t, mean_i, var_t, _, cov = measures.ncc_moments(stats)
+    gain = jnp.where(var_t > 1e-12, cov / jnp.where(var_t > 1e-12, var_t, 1.0), 0.0)
     return mean_i + gain * (template - mean_t)
   return template
 
 
-def gauss_newton(u0, quads, frame_shape, grid, template, bin_weights, loss_of: Callable,
-                 to_level_homography: Callable, steps: int, similarity: str,
-                 tolerance: float):
-  """Levenberg–Marquardt steps on ‖I(W(p; u)) − T̃‖², accepted by the similarity.
+def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, tolerance):
+  """Damped Gauss–Newton steps, each accepted only if it lowers the loss.
 
-  Each step re-estimates T̃ at the current estimate and solves the damped
-  normal equations; a step is kept only when it lowers `loss_of` (the
-  similarity being maximised), otherwise the damping grows and the step is
-  retried from the best estimate, so the refinement never loses ground (and
-  a T̃ gone flat from a poor start cannot drag the warp to a flat region).
+  A rejected step grows the damping and is retried from the best estimate,
+  so the refinement never loses ground (and a T̃ gone flat from a poor
+  start cannot drag the warp to a flat region).
 
   Args:
-    u0: (D,) starting motion parameters.
-    quads: the level's image packed by `sampling.pack_quads`.
-    frame_shape: (H, W) of the level's image.
-    grid: (h, w, 2) template points used (all the level's pixels, or a
-      selection shaped (1, n, 2)), in level pixels.
-    template: (h, w) template values at `grid`.
-    bin_weights: (h, w, bins) their soft bins ("mi") or None.
-    loss_of: (homography (3, 3), patch (h, w), mask (h, w)) → () loss of the
-      similarity (+inf for a warp that is not admissible).
-    to_level_homography: u (D,) → (3, 3) template → level-image homography.
-    steps: iterations at most (one warp, one loss and one D×D solve each);
-      fewer once a step moves less than `tolerance` or after
-      `_MAX_REJECTED` rejected steps in a row.
-    similarity: which photometric model T̃ follows.
-    tolerance: stop once a proposed step moves no parameter by more than
-      this (in units of u).
+    u0: (D,) starting parameters.
+    linearise: u → (loss (), JᵀJ (D, D), Jᵀr (D,)) at u.
+    loss_at: u → () loss (the final step's, which is not linearised).
+    steps: () int32 linearisations at most; fewer once a step moves no
+      parameter by more than `tolerance` or after `_MAX_REJECTED` rejected
+      steps in a row.
+    tolerance: () stop threshold, in units of u.
 
   Returns:
-    ((D,) the lowest-loss parameters visited (u0 if no step helped), () that
-    loss, () int32 loss evaluations made).
+    ((D,) the lowest-loss parameters visited, () that loss, () int32 loss
+    evaluations made).
   """
-  flat = grid.reshape(-1, 2)
-  points = jnp.concatenate([flat, jnp.ones_like(flat[:, :1])], axis=1)  # (h·w, 3)
-
-  def linearise(u):
-    """Loss at u, and the normal equations (JᵀJ, Jᵀr) of the adapted SSD."""
-    h = to_level_homography(u)
-    value, gx, gy, valid, (x, y, w) = sampling.sample_with_gradient(
-        quads, frame_shape, h, grid, projection=True)
-    target = adapted_template(template, bin_weights, value, valid, similarity)
-    # J = B·M: B = ∂I(W(p))/∂h per pixel (h·w, 9) in closed form (the
-    # gradients are 0 where invalid), M = ∂h/∂u (9, D) by forward mode
-    # through the motion model.  JᵀJ = Mᵀ(BᵀB)M and Jᵀr = Mᵀ(Bᵀr) come from
-    # one 10×10 Gram of [B r]: forming the (h·w, D) J and multiplying it
-    # twice took 14 of the 82 ms of a 64-region frame step (profiled).
-    gx, gy = (gx / w).reshape(-1), (gy / w).reshape(-1)
-    across = -(gx * x.reshape(-1) + gy * y.reshape(-1))
-    residual = (value - target).reshape(-1) * valid.reshape(-1).astype(value.dtype)
-    stacked = jnp.concatenate([gx[:, None] * points, gy[:, None] * points,
-                               across[:, None] * points, residual[:, None]], axis=1)
-    gram = stacked.T @ stacked
-    by_motion = jax.jacfwd(to_level_homography)(u).reshape(9, -1)
-    return (loss_of(h, value, valid), by_motion.T @ gram[:9, :9] @ by_motion,
-            by_motion.T @ gram[:9, 9])
-
   d = u0.shape[0]
 
   def body(carry):
@@ -151,7 +119,6 @@ def gauss_newton(u0, quads, frame_shape, grid, template, bin_weights, loss_of: C
            jnp.eye(d, dtype=u0.dtype), zero, jnp.asarray(_DAMPING, u0.dtype),
            jnp.zeros([], jnp.int32), zero + jnp.inf)
   taken, u, best_u, best_loss, *_ = jax.lax.while_loop(running, body, carry)
-  h = to_level_homography(u)
-  last = loss_of(h, *sampling.sample_points(quads, frame_shape, h, grid))
+  last = loss_at(u)
   better = last < best_loss
   return jnp.where(better, u, best_u), jnp.where(better, last, best_loss), taken + 1

@@ -296,16 +296,24 @@ def _neg_entropy(p, axes):
                  axis=axes)
 
 
-def _entropies(a, b, mask, min_valid):
-  """Marginal and joint entropies (nats) and the enough-valid-pixels flag."""
-  counts = _joint_counts(a, b, mask)
+def entropies(counts):
+  """Marginal and joint entropies (nats) of joint histogram counts (..., bins, bins), rows a.
+
+  All zero where the counts are (no valid pixel).
+  """
   total = jnp.sum(counts, axis=(-2, -1))
-  ok = _enough(total, b.shape[-1] * b.shape[-2], min_valid)
-  p = counts / jnp.where(ok, total, 1.0)[..., None, None]
+  p = counts / jnp.where(total > 0, total, 1.0)[..., None, None]
   h_a = -_neg_entropy(jnp.sum(p, axis=-1), -1)
   h_b = -_neg_entropy(jnp.sum(p, axis=-2), -1)
   h_ab = -_neg_entropy(p, (-2, -1))
-  return h_a, h_b, h_ab, ok
+  return h_a, h_b, h_ab
+
+
+def _entropies(a, b, mask, min_valid):
+  """Marginal and joint entropies (nats) and the enough-valid-pixels flag."""
+  counts = _joint_counts(a, b, mask)
+  ok = _enough(jnp.sum(counts, axis=(-2, -1)), b.shape[-1] * b.shape[-2], min_valid)
+  return entropies(counts) + (ok,)
 
 
 def _prepare_mi(a, b, mask, bins, value_range, min_valid):

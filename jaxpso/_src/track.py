@@ -2,18 +2,19 @@
 
 Frame 0's region is the template; a batch of R regions (or of R sequences)
 is tracked together, every step `vmap`ped over the regions.  Every later
-frame is one call of one compiled program (`_frame_step`): the frame's
-pyramid, a start chosen between
-the constant-velocity prediction and the previous estimate, the registration
-of `align.register` (Gauss–Newton from the start; when that falls short of
-`TrackConfig.accept_quality`, the swarm and Gauss–Newton from its best), a
-quality check and, when the quality is low, a recovery search around the last
-good estimate: a larger swarm over the template's translation in a wider box,
-then Gauss–Newton (for the regions that need them only: `align.where_needed`).
+frame is one call of one compiled program (`_frame_step`) on the frame's
+pyramid (built on the host, `jaxpso._src.atlas`): a start chosen between the
+constant-velocity prediction and the previous estimate, then the stages of
+`jaxpso._src.register` (Gauss–Newton from the start; when that falls short
+of `TrackConfig.accept_quality`, the swarm and Gauss–Newton from its best;
+when the quality stays under `TrackConfig.lost_threshold`, a recovery
+search around the last good estimate: wider swarms over the template's
+translation, then Gauss–Newton), each only for the regions that need it.
 A frame whose quality stays low is LOST: the last good estimate is kept and
 the motion prediction is reset.  For motion "plane" the camera pose is
 accumulated, T̂ ← T(x) · T̂.  With a gradient baseline
 (`TrackConfig.method`) the registration is that method's, without recovery.
+Neither the frame size nor the regions' sizes enter the compiled program.
 """
 
 from __future__ import annotations
@@ -29,13 +30,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxpso._src import align
-from jaxpso._src import compile_options
+from jaxpso._src import atlas
 from jaxpso._src import homography
 from jaxpso._src import motion
 from jaxpso._src import plane
+from jaxpso._src import programs
 from jaxpso._src import pso
-from jaxpso._src import sampling
+from jaxpso._src import register
 from jaxpso._src import sharding
+from jaxpso._src import template as templates
 
 
 class TrackStatus(enum.IntEnum):
@@ -52,8 +55,9 @@ class TrackResult(NamedTuple):
     homographies: (T, 3, 3) template pixel → frame pixel, h[2, 2] = 1.
     corners: (T, 4, 2) the template's corners (TL, TR, BR, BL) in each frame.
     scores: (T,) similarity at the estimate (an error for "ssd").
-    quality: (T,) `align.quality` of the estimate: about 1 for a match, lower
-      the worse (1 at frame 0; `TrackConfig.lost_threshold` is the threshold).
+    quality: (T,) `register.quality` of the estimate: about 1 for a match,
+      lower the worse (1 at frame 0; `TrackConfig.lost_threshold` is the
+      threshold).
     status: (T,) int32 `TrackStatus`.
     poses: (T, 4, 4) frame-0 → frame camera poses for motion "plane", else None.
     num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0).
@@ -71,9 +75,10 @@ class TrackResult(NamedTuple):
 
 class _Constants(NamedTuple):
   """What every frame step shares (a pytree; every leaf has the leading region axis R)."""
-  template: align.Template
+  template: templates.Template
   geometry: motion.Plane | None
   seed: jax.Array  # (R, 2) uint32
+  pyramid: list | None  # the baselines' dense template levels, (R, h_l, w_l) each
 
 
 class _Carry(NamedTuple):
@@ -81,6 +86,8 @@ class _Carry(NamedTuple):
   estimate: jax.Array  # (R, 3, 3) homography or (R, 4, 4) pose: the last good estimate
   velocity: jax.Array  # same shape: estimate_t · estimate_{t-1}⁻¹
   frame: jax.Array  # (R,) int32 index of the next frame
+  self_loss: jax.Array  # (R,) the template's loss against itself (NaN until frame 1)
+  template_range: jax.Array  # (R, 2) its MI binning range
 
 
 def _inverse(m):
@@ -92,81 +99,97 @@ def _frame_seed(seed, frame):
   return jnp.stack([seed[0], pso._mix(seed[1] ^ pso._mix(frame.astype(jnp.uint32)))])
 
 
-@functools.partial(compile_options.jit, static_argnames=("config",))
-def _prepare(templates, config: align.TrackConfig) -> align.Template:
-  """(R, h, w) templates → their `align.Template`s stacked (one compiled program)."""
-  return jax.vmap(functools.partial(align.prepare_template, config=config))(templates)
+def _constants(carry: _Carry, template, knobs, config):
+  """(self loss, template range) of every region: computed at the first step, then carried."""
+  def compute(_):
+    return register.each(lambda t: register.template_constants(t, knobs.min_valid, config),
+                         template)
+  return jax.lax.cond(jnp.any(jnp.isnan(carry.self_loss)), compute,
+                      lambda _: (carry.self_loss, carry.template_range), None)
 
 
-@functools.partial(compile_options.jit, static_argnames=("config",))
-def _frame_step(carry: _Carry, image, constants: _Constants, *, config: align.TrackConfig):
-  """One frame of R regions: (carry, (H, W) image shared or (R, H, W) one per region) →
+def _predict(contexts: register.Context, knobs, config):
+  """Contexts whose start (base 0, the prediction) falls back to the previous estimate (base 1)
+  where that scores better over every full-resolution pixel."""
+  def losses(context):
+    problem = register.Problem(context, knobs, config)
+    zero = jnp.zeros((2, problem.dim), jnp.float32)
+    h = problem.homography(zero, jnp.arange(2))
+    return problem._loss(problem._scores(h, 0, templates.FULL, templates.CHUNK, (2,),
+                                         problem.ranges(1)), templates.FULL, zero, jnp.arange(2))
+
+  keep = register.each(losses, contexts)
+  previous = keep[:, 0] > keep[:, 1]
+
+  def fall_back(a):
+    return jnp.where(previous.reshape((-1,) + (1,) * (a.ndim - 1)), a[:, 1:2].repeat(2, 1), a)
+
+  return contexts._replace(bases=fall_back(contexts.bases), quads=fall_back(contexts.quads),
+                           image_ranges=fall_back(contexts.image_ranges))
+
+
+@functools.partial(programs.Program, static_argnames=("config",))
+def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs: register.Knobs,
+                *, config: align.TrackConfig):
+  """One frame of R regions: (carry, the frame's atlas, shared (1-D pixels) or one per region) →
   (carry, per-frame outputs, each with the leading R)."""
-  frame, shapes = align.prepare_frame(image, config)
-  frame_axis = 0 if image.ndim == 3 else None
-  template = constants.template
-  shape = template.pyramid[0].shape[1:]
-  loss_of, sign = align._measure(config)
-  zero = jnp.zeros(motion.dimension(config.motion, config.dof), jnp.float32)
-
-  def homography_of(estimate, geometry):  # one region's estimate → (3, 3)
-    return motion.to_homography(zero, base=estimate, geometry=geometry, shape=shape,
-                                motion=config.motion, dof=config.dof)
-
-  def predict(frame, template, estimate, velocity, geometry):
-    """The constant-velocity prediction or the previous estimate, whichever scores better."""
-    predicted = velocity @ estimate
-    both = jnp.stack([homography_of(predicted, geometry), homography_of(estimate, geometry)])
-    patches, masks = sampling.sample_quads(frame[0], shapes[0], both, shape)
-    losses = loss_of(template.reference(0, align.intensity_range(patches[1], masks[1])),
-                     patches, masks)
-    return jnp.where(losses[0] <= losses[1], predicted, estimate)
-
-  start = carry.estimate
-  if config.predict:
-    start = jax.vmap(predict, in_axes=(frame_axis, 0, 0, 0, 0))(
-        frame, template, carry.estimate, carry.velocity, constants.geometry)
-
-  seed = jax.vmap(_frame_seed)(constants.seed, carry.frame)
-  search = functools.partial(align.register, frame, shapes, template, geometry=constants.geometry,
-                             config=config)
-  found = search(base=start, seed=seed, radius=jnp.float32(config.search_radius),
-                 max_iterations=config.max_iterations,
-                 accept=(None if config.accept_quality is None
-                         else lambda found: found.quality >= config.accept_quality))
-  weak = ~(found.quality >= config.lost_threshold)
-
-  def recover(indices):
-    # What accumulates while the target is lost is mostly translation, and a
-    # swarm over every motion parameter in the wide box seldom found it.
-    wide = search(base=carry.estimate, seed=seed ^ jnp.uint32(0x5BD1E995),
-                  radius=jnp.float32(config.search_radius * config.recovery_scale),
-                  max_iterations=config.max_iterations * config.recovery_scale,
-                  swarm_size=config.swarm_size * config.recovery_scale, translation=True,
-                  indices=indices)
-    alone, began, last = align.take((found, start, carry.estimate), indices)
-    return align.better_of(alone, wide), align.select(alone.loss <= wide.loss, began, last)
-
-  base = start
+  self_loss, template_range = _constants(carry, constants.template, knobs, config)
+  seeds = jax.vmap(_frame_seed)(constants.seed, carry.frame)
+  predicted = jnp.where(knobs.predict, carry.velocity @ carry.estimate, carry.estimate)
+  bases = jnp.stack([predicted, carry.estimate], axis=1)
+  contexts = register.each(
+      lambda image, template, bases, geometry, seed, own, value_range: register.context(
+          image, template, bases, geometry, seed, knobs, config, (own, value_range)),
+      image, constants.template, bases, constants.geometry, seeds, self_loss, template_range)
+  contexts = jax.lax.cond(knobs.predict, lambda c: _predict(c, knobs, config), lambda c: c,
+                          contexts)
   if config.method == "pso":
-    found, base = align.where_needed(weak, recover, (found, start))
+    state = register.run(contexts, knobs, "track", config)
+    found, recovered = state.best, state.recovered
+  else:
+    found = register.each(lambda c, p: register.baseline(c, p, knobs, config), contexts,
+                          constants.pyramid)
+    recovered = jnp.zeros(found.loss.shape, bool)
   quality = found.quality
-  lost = ~(quality >= config.lost_threshold) | ~jnp.all(jnp.isfinite(found.u), axis=-1)
+  lost = ~(quality >= knobs.lost_quality) | ~jnp.all(jnp.isfinite(found.u), axis=-1)
   status = jnp.where(lost, TrackStatus.LOST,
-                     jnp.where(weak, TrackStatus.RECOVERED, TrackStatus.TRACKED)).astype(jnp.int32)
-
+                     jnp.where(recovered, TrackStatus.RECOVERED, TrackStatus.TRACKED))
+  base = jnp.take_along_axis(contexts.bases, found.base[:, None, None, None], axis=1)[:, 0]
   estimate = found.homography
   if config.motion != "homography":
     estimate = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(
         found.u, base, constants.geometry)
-  estimate = align.select(lost, carry.estimate, estimate)
+  estimate = register.select(lost, carry.estimate, estimate)
   identity = jnp.broadcast_to(jnp.eye(estimate.shape[-1], dtype=estimate.dtype), estimate.shape)
-  velocity = align.select(lost, identity, estimate @ jax.vmap(_inverse)(carry.estimate))
-  h = jax.vmap(lambda e, g: align.normalized(homography_of(e, g)))(estimate, constants.geometry)
-  outputs = dict(homography=h, score=sign * found.loss,
-                 quality=quality, status=status, estimate=estimate,
+  velocity = register.select(lost, identity, estimate @ jax.vmap(_inverse)(carry.estimate))
+  h = found.homography
+  if config.motion != "homography":
+    zero = jnp.zeros(motion.dimension(config.motion, config.dof), jnp.float32)
+    h = jax.vmap(lambda e, g, size: register.normalized(motion.to_homography(
+        zero, base=e, geometry=g, shape=size, motion=config.motion, dof=config.dof)))(
+            estimate, constants.geometry, constants.template.size)
+  h = register.select(lost, jax.vmap(register.normalized)(_last_homography(carry, constants,
+                                                                            config)), h)
+  outputs = dict(homography=h, score=align.score_sign(config) * found.loss, quality=quality,
+                 status=status.astype(jnp.int32), estimate=estimate,
                  num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
-  return _Carry(estimate, velocity, carry.frame + 1), outputs
+  return _Carry(estimate, velocity, carry.frame + 1, self_loss, template_range), outputs
+
+
+def _last_homography(carry: _Carry, constants: _Constants, config):
+  """(R, 3, 3) the homographies of the last good estimates."""
+  if config.motion == "homography":
+    return carry.estimate
+  zero = jnp.zeros(motion.dimension(config.motion, config.dof), jnp.float32)
+  return jax.vmap(lambda e, g, size: motion.to_homography(
+      zero, base=e, geometry=g, shape=size, motion=config.motion, dof=config.dof))(
+          carry.estimate, constants.geometry, constants.template.size)
+
+
+@functools.partial(jax.jit, static_argnames=("config",))
+def _own_loss(template, knobs, config):
+  """() the template's loss against itself (frame 0's score when there is no other frame)."""
+  return register.template_constants(template, knobs.min_valid, config)
 
 
 # `track` moves the per-frame outputs to the host in chunks of this many
@@ -263,10 +286,25 @@ def _regions(roi):
   return (list(roi) if batched else [roi]), batched
 
 
-def _to_common_grid(shape, common):
-  """(3, 3) scale from a region's template pixels (h, w) to the batch's common grid."""
-  return np.diag([(common[1] - 1) / max(shape[1] - 1, 1), (common[0] - 1) / max(shape[0] - 1, 1),
-                  1.0])
+def _template(frame: np.ndarray, corners: np.ndarray, shape) -> np.ndarray:
+  """The (h, w) template of a region of frame 0: its pixels, or its quad warped onto the rectangle."""
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  rows, cols = shape
+  rect = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]], np.float64)
+  if np.array_equal(corners - corners[0], rect) and np.all(corners[0] == np.round(corners[0])):
+    x, y = int(corners[0, 0]), int(corners[0, 1])
+    return np.ascontiguousarray(frame[y:y + rows, x:x + cols])
+  h = cv2.getPerspectiveTransform(rect.astype(np.float32), corners.astype(np.float32))
+  return cv2.warpPerspective(frame, h, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
+
+
+def _start(corners: np.ndarray, shape) -> np.ndarray:
+  """(3, 3) float32 homography from a template of `shape` onto its corners in frame 0, h[2, 2] = 1."""
+  rows, cols = shape
+  rect = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]], np.float32)
+  h = np.asarray(homography.homography_from_corners(rect, corners.astype(np.float32)), np.float64)
+  return (h / h[2, 2]).astype(np.float32)
 
 
 def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0, camera=None,
@@ -276,12 +314,12 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
 
   A batch of R regions, `roi` of shape (R, 4) or (R, 4, 2), is tracked in one
   compiled program (`vmap` over the templates); every field of the result
-  gains a leading R axis.  The templates are sampled on one common grid (the
-  largest region's height and width), and the homographies are reported
-  from each region's own template pixels.  With `sequences=True` region r is
-  tracked in sequence r of `frames`.  The costly searches (the swarm, the
-  recovery) run only for the regions that need them (`align.where_needed`).
-  With several devices the regions are split over them (`jax.sharding`).
+  gains a leading R axis.  Each region keeps its own template (its own
+  pixels; with a gradient baseline all regions must have one size).  With
+  `sequences=True` region r is tracked in sequence r of `frames`.  The
+  costly searches (the swarm, the recovery) run only for the regions that
+  need them.  With several devices the regions are split over them
+  (`jax.sharding`).
 
   Args:
     frames: (T, H, W) or (T, H, W, 3) array, or any iterable of frames (a
@@ -289,6 +327,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
       With `sequences=True`: (R, T, H, W[, 3]), or R such sequences of one length.
     roi: (x, y, w, h) box in frame 0 (integer w, h), or (4, 2) corners TL,
       TR, BR, BL in frame-0 pixels; or (R, 4) boxes or (R, 4, 2) corners.
+      Each side of a region's template `align.TEMPLATE_SIDES` (8 to 4096) pixels.
     config: `TrackConfig` (motion, similarity, swarm, refinement, recovery).
     key: int seed or PRNG key; a fixed key gives bit-identical results.
     camera: (3, 3) intrinsics K for motion "plane"; default f = max(H, W) and
@@ -307,8 +346,9 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
 
   Raises:
     ValueError: zero frames, frames of differing sizes or with non-finite
-      pixels, a bad or out-of-frame ROI, a textureless template, a bad camera
-      or normal.  TypeError: a bad dtype or config.
+      pixels, a bad or out-of-frame ROI, a template outside the supported
+      sizes or textureless, a bad camera or normal.  TypeError: a bad dtype
+      or config.
   """
   if not isinstance(config, align.TrackConfig):
     raise TypeError(f"config must be a TrackConfig, got {type(config).__name__}")
@@ -322,10 +362,11 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   first = next(iterator, None)
   if first is None:
     raise ValueError("frames must hold at least one frame, got none")
+
   def frame_name(r, index):
     return f"frames[{r}][{index}]" if sequences else f"frames[{index}]"
 
-  frame0 = [align.to_gray(f, frame_name(r, 0)) for r, f in enumerate(first)]
+  frame0 = [np.asarray(align.to_gray(f, frame_name(r, 0))) for r, f in enumerate(first)]
   if any(f.shape != frame0[0].shape for f in frame0):
     raise ValueError(f"the sequences' frames must have one size, got {[f.shape for f in frame0]}")
   frame_shape = frame0[0].shape
@@ -334,60 +375,67 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
     return f"roi[{r}]" if batched else "roi"
 
   regions = [_template_geometry(roi, frame_shape, name(r)) for r, roi in enumerate(rois)]
-  common = tuple(max(shape[i] for _, shape in regions) for i in (0, 1))
-  config = config.for_template(common)  # the templates are sampled on the common grid
-  for r, (_, shape) in enumerate(regions):
-    align.check_template_size(shape, config, name(r))
-  to_common = np.stack([_to_common_grid(shape, common) for _, shape in regions])
-  # Common grid → frame 0, for every region at once (eager calls per region
-  # cost more than tracking a frame of a 64-region batch).
-  rect = np.asarray(homography.rect_corners(common), np.float32)
-  starts = np.asarray(homography.homography_from_corners(
-      rect, np.stack([corners for corners, _ in regions]).astype(np.float32)), np.float64)
-  starts = starts / starts[:, 2:, 2:]
-  if sequences:
-    templates = jnp.stack([sampling.warp_image(f, jnp.asarray(h, jnp.float32), common)[0]
-                           for f, h in zip(frame0, starts)])
-  else:
-    templates = sampling.warp_image(frame0[0], jnp.asarray(starts, jnp.float32), common)[0]
-  align.check_texture(np.asarray(jnp.std(templates, axis=(1, 2))),
+  shapes = [shape for _, shape in regions]
+  if config.method != "pso" and len(set(shapes)) > 1:
+    raise ValueError(f"every region tracked by {config.method!r} must have one size, got"
+                     f" {sorted(set(shapes))}")
+  configs = [config.for_template(shape) for shape in shapes]
+  for r, (shape, c) in enumerate(zip(shapes, configs)):
+    align.check_template_size(shape, c, name(r))
+  levels = max(c.levels for c in configs)
+  align.check_image_size(frame_shape, configs[int(np.argmax([c.levels for c in configs]))],
+                         "frames[0]")
+  pixels = [frame0[r if sequences else 0] for r in range(count)]
+  templates_ = [_template(f, corners, shape) for f, (corners, shape) in zip(pixels, regions)]
+  align.check_texture(np.array([np.std(t) for t in templates_]),
                       lambda r: f"{name(r)} {rois[r]!r}")
+  starts = np.stack([_start(corners, shape) for corners, shape in regions])
   geometry = None
   if config.motion == "plane":
-    geometry = align.plane_geometries(camera, plane_normal, frame_shape, starts, common,
+    geometry = align.plane_geometries(camera, plane_normal, frame_shape, starts, shapes,
                                       config.dof)
   elif camera is not None or plane_normal is not None:
     raise ValueError("camera and plane_normal apply to motion 'plane' only;"
                      f" got TrackConfig.motion={config.motion!r}")
-  starts = starts.astype(np.float32)
   size = 3 if geometry is None else 4
   first_estimate = starts if geometry is None else np.broadcast_to(np.eye(4, dtype=np.float32),
                                                                    (count, 4, 4))
   mesh = sharding.batch_mesh(devices, count)
-  prepared = _prepare(sharding.split(templates, mesh), config)
-  constants = _Constants(prepared, sharding.split(geometry, mesh),
-                         sharding.split(align.element_seeds(key, count), mesh))
-  carry = sharding.split(_Carry(first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32),
-                                                       (count, size, size)),
-                       np.ones(count, np.int32)), mesh)
+  prepared = align._stack([templates.prepare(t, c.levels, c.pixels)
+                           for t, c in zip(templates_, configs)])
+  pyramid = None
+  statics = config.statics()
+  if config.method != "pso":
+    pyramid = align.template_pyramids(templates_, configs[0].levels)
+    statics = align.dataclasses.replace(config, levels=configs[0].levels).statics()
+  constants = sharding.split(_Constants(prepared, geometry, align.element_seeds(key, count),
+                                        pyramid), mesh)
+  carry = sharding.split(_Carry(
+      first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32), (count, size, size)),
+      np.ones(count, np.int32), np.full(count, np.nan, np.float32),
+      np.zeros((count, 2), np.float32)), mesh)
+  knobs = sharding.replicate(jax.tree.map(jnp.asarray, config.knobs()), mesh)
+  capacity = atlas.capacity(sum(h * w for h, w in atlas.level_shapes(frame_shape, levels)))
 
-  first_score = (np.zeros(count, np.float32) if config.similarity == "ssd"
-                 else -sharding.to_host(prepared.self_loss)[:count])
   chunks = [{k: v[:, None] for k, v in dict(
-      homography=starts, score=first_score, quality=np.ones(count, np.float32),
+      homography=starts, score=np.full(count, np.nan, np.float32),
+      quality=np.ones(count, np.float32),
       status=np.full(count, TrackStatus.TRACKED, np.int32), estimate=np.asarray(first_estimate),
       num_iterations=np.zeros(count, np.int32),
       num_evaluations=np.zeros(count, np.int32)).items()}]
   outputs = []
   for index, raw in enumerate(iterator, start=1):
-    images = [align.to_gray(f, frame_name(r, index)) for r, f in enumerate(raw)]
+    images = [np.asarray(align.to_gray(f, frame_name(r, index))) for r, f in enumerate(raw)]
     for r, image in enumerate(images):
       if image.shape != frame_shape:
         raise ValueError(f"{frame_name(r, index)} has shape {image.shape}, frame 0 has"
                          f" {frame_shape}: all frames must have one size")
-    image = (sharding.split(np.stack(images), mesh) if sequences
-             else sharding.replicate(images[0], mesh))
-    carry, out = _frame_step(carry, image, constants, config=config)
+    if sequences:
+      image = sharding.split(align._stack([atlas.build(i, levels, capacity) for i in images]),
+                             mesh)
+    else:
+      image = sharding.replicate(atlas.build(images[0], levels, capacity), mesh)
+    carry, out = _frame_step(carry, image, constants, knobs, config=statics)
     outputs.append(out)
     if len(outputs) == _HOST_CHUNK:
       chunks.append(_to_host(outputs))
@@ -400,9 +448,17 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   if outputs:
     chunks.append(_to_host(outputs))
   stacked = {k: np.concatenate([c[k][:count] for c in chunks], axis=1) for k in chunks[0]}
-  own = stacked["homography"] @ to_common[:, None]  # own template pixels → frame
+  if len(chunks) > 1:  # frame 0's score: the template against itself
+    self_loss = sharding.to_host(carry.self_loss)[:count]
+  else:
+    self_loss = np.asarray(jax.vmap(lambda t: _own_loss(t, config.knobs(), statics)[0])(
+        jax.tree.map(jnp.asarray, prepared)))
+  stacked["score"][:, 0] = 0.0 if config.similarity == "ssd" else -self_loss
+  own = stacked["homography"].astype(np.float64)
   own = own / own[..., 2:, 2:]
-  mapped = stacked["homography"] @ np.c_[rect, np.ones(4, np.float32)].T  # (R, T, 3, 4)
+  rects = np.stack([np.c_[np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64),
+                          np.ones(4)] for h, w in shapes])  # (R, 4, 3)
+  mapped = own @ np.swapaxes(rects, -1, -2)[:, None]  # (R, T, 3, 4)
   corners = np.swapaxes(mapped[..., :2, :] / mapped[..., 2:, :], -1, -2)
   result = TrackResult(
       homographies=own.astype(np.float32), corners=corners,
