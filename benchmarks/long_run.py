@@ -24,7 +24,7 @@ import numpy as np
 
 import common
 import jaxpso
-from jaxpso._src import track as track_module
+from jaxpso._src import programs
 
 
 def memory_mib() -> tuple[float, float]:
@@ -50,20 +50,23 @@ def main():
       args.seed, num_frames=n, frame_shape=(180, 240), roi_size=(64, 64),
       jumps=(n // 3, 2 * n // 3), gain_drift=0.1, noise=0.01, lazy=True)
 
-  step = track_module._frame_step
   checkpoints = []
+
+  def made():  # programs compiled or loaded so far
+    counts = programs.counts()
+    return counts["compiled"] + counts["loaded"]
 
   def checkpoint(calls):
     frames_done = calls + 1  # frame 0 is the template
     if frames_done == 2:
-      checkpoints.append(dict(frames=2, programs=step._cache_size()))
+      checkpoints.append(dict(frames=2, programs=made()))
     if frames_done % args.block == 0 or frames_done == n:
       current, peak = memory_mib()
       checkpoints.append(dict(frames=frames_done, rss_mib=current, peak_rss_mib=peak,
-                              programs=step._cache_size(), time=time.perf_counter()))
+                              programs=made(), time=time.perf_counter()))
       print(checkpoints[-1], flush=True)
 
-  programs_before = step._cache_size()
+  programs_before = made()
   rss_before, _ = memory_mib()
   with common.timed_frame_steps(checkpoint) as seconds:
     result = jaxpso.track(sequence.frames, sequence.roi, key=args.seed)

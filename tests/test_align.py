@@ -1,6 +1,9 @@
 """align: recovers perturbed homographies (Baker–Matthews style) on the embedded image."""
 
+import os
 import re
+import subprocess
+import sys
 
 import cv2
 import numpy as np
@@ -9,8 +12,8 @@ import pytest
 import jaxpso
 from jaxpso._src import align as align_module
 from jaxpso._src import plane
-from jaxpso._src.data import load_image
 from jaxpso._src import programs
+from jaxpso._src.data import load_image
 
 
 def programs_made() -> int:
@@ -184,3 +187,67 @@ def test_plane_arguments_are_checked(kwargs, match):
       "plane", False) else CONFIG
   with pytest.raises(ValueError, match=match):
     jaxpso.align(IMAGE, TEMPLATE, _perturbed(0, 1.0), config=config, **kwargs)
+
+
+_SWEEP = """
+import resource, sys
+import numpy as np
+import jaxpso
+from jaxpso._src import programs
+
+programs.set_max_programs(2)  # programs no longer used are dropped (and reloaded from the cache)
+image = jaxpso.data.load_image("camera")[100:260, 150:310].copy()
+template = image[48:96, 56:104].copy()
+start = np.array([[1, 0, 58], [0, 1, 47], [0, 0, 1]], np.float32)
+configs = []
+for i, kind in enumerate([0] * 14 + [1] * 14 + [2] * 14 + [3] * 14 + [0] * 4):
+  configs.append(jaxpso.TrackConfig(
+      similarity="ssd", swarm_size=(8, 12)[kind % 2], variant=("inertia", "constriction")[kind // 2],
+      max_iterations=5 + i % 7, patience=None if i % 3 else 3, search_radius=4.0 + i % 5,
+      accept_quality=None if i % 4 else 0.99, retry_quality=0.5 + i / 200, refine_steps=4 + i % 3,
+      levels=1 + i % 2))
+errors = []
+for i, config in enumerate(configs):
+  result = jaxpso.align(image, template, start, config=config, key=i)
+  errors.append(np.abs(np.asarray(result.homography)[:2, 2] - [56, 48]).max())
+counts = programs.counts()
+print(len({c.statics() for c in configs}), counts["compiled"], counts["loaded"], counts["reused"],
+      max(errors), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024, flush=True)
+"""
+
+
+def test_a_sweep_of_60_configs_compiles_one_program_per_static_setting(tmp_path):
+  # Swarm size and variant are static (4 combinations); iterations,
+  # patience, radius, thresholds, steps and levels are data.  With room for
+  # two programs, the first is dropped and comes back from the disk cache.
+  env = dict(os.environ, JAXPSO_CACHE_DIR=str(tmp_path))
+  done = subprocess.run([sys.executable, "-c", _SWEEP], env=env, capture_output=True, text=True,
+                        timeout=900)
+  assert done.returncode == 0, done.stderr[-3000:]
+  statics, compiled, loaded, reused, error, rss_mib = done.stdout.split()
+  assert int(statics) == 4 and int(compiled) == 4, done.stdout
+  assert int(loaded) >= 1 and int(compiled) + int(loaded) + int(reused) == 60, done.stdout
+  assert float(error) < 1.0, done.stdout  # 2 px off at the start
+  assert int(rss_mib) < 2048, done.stdout
+
+
+def test_templates_and_images_of_many_sizes_share_one_program():
+  # 24 to 48 px templates in images of three sizes, starts anywhere: one
+  # program (the shape-independent registration), every alignment within
+  # 1 px (corner RMS).
+  config = jaxpso.TrackConfig(swarm_size=20, max_iterations=10, search_radius=8.0)
+  rng = np.random.default_rng(3)
+  before = programs_made()
+  for shape in ((200, 240), (300, 400), (512, 512)):
+    image = cv2.resize(IMAGE, shape[::-1])
+    for size in (24, 40, 48):
+      x, y = (int(v) for v in rng.integers(20, np.array(shape[::-1]) - size - 20))
+      while image[y:y + size, x:x + size].std() < 0.05:  # textured places only
+        x, y = (int(v) for v in rng.integers(20, np.array(shape[::-1]) - size - 20))
+      source = np.float32([[0, 0], [size - 1, 0], [size - 1, size - 1], [0, size - 1]])
+      truth = source + np.float32([x, y])
+      start = cv2.getPerspectiveTransform(source, truth + np.float32(rng.normal(0, 1.0, (4, 2))))
+      result = jaxpso.align(image, image[y:y + size, x:x + size], start, config=config)
+      mapped = cv2.perspectiveTransform(source[None], np.float64(result.homography))[0]
+      assert np.sqrt(np.mean(np.sum((mapped - truth) ** 2, -1))) < 1.0, (shape, size)
+  assert programs_made() - before == 1

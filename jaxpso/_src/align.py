@@ -222,7 +222,11 @@ class TrackConfig:
     return _statics(self)
 
   def knobs(self) -> register.Knobs:
-    """The runtime settings as `register.Knobs` (NumPy scalars: no device work)."""
+    """The runtime settings as `register.Knobs` of device scalars (made once per config)."""
+    return _knobs(self)
+
+  def host_knobs(self) -> register.Knobs:
+    """`knobs` as NumPy scalars."""
     off = np.float32(np.inf)
     return register.Knobs(
         search_radius=np.float32(self.search_radius),
@@ -233,6 +237,11 @@ class TrackConfig:
         retry_quality=np.float32(self.retry_quality),
         lost_quality=np.float32(self.lost_threshold), min_valid=np.float32(self.min_valid),
         recovery_scale=np.int32(self.recovery_scale), predict=np.bool_(self.predict))
+
+
+@functools.lru_cache(maxsize=256)
+def _knobs(config: TrackConfig) -> register.Knobs:
+  return jax.tree.map(jnp.asarray, config.host_knobs())
 
 
 _RUNTIME = ("search_radius", "max_iterations", "patience", "refine_steps", "accept_quality",
@@ -295,7 +304,7 @@ def to_gray(image, name: str):
     raise TypeError(f"{name} must be uint8 or float, got dtype {array.dtype}")
   if not (array.ndim == 2 or (array.ndim == 3 and array.shape[-1] == 3)):
     raise ValueError(f"{name} must be (H, W) grey or (H, W, 3) colour, got shape {array.shape}")
-  grey = array.astype(xp.float32)
+  grey = array.astype(xp.float32) if xp is jnp else array.astype(np.float32, copy=False)
   if array.dtype == np.uint8:
     grey = grey * xp.float32(1 / 255)
   if grey.ndim == 3:
@@ -556,7 +565,8 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
     bases = np.broadcast_to(np.eye(4, dtype=np.float32), (len(starts), 2, 4, 4))
   else:
     bases = np.repeat((to_window @ np.stack(starts))[:, None], 2, axis=1).astype(np.float32)
-  prepared = _stack([templates.prepare(t, c.levels, c.pixels) for t, c in zip(templates_, configs)])
+  prepared = _stack([templates.prepared(t, c.levels, c.pixels)
+                     for t, c in zip(templates_, configs)])
   arguments = (_stack(pyramids), prepared, bases, geometry, element_seeds(key, len(starts)),
                offsets)
   mesh = sharding.batch_mesh(devices, len(starts))
@@ -578,7 +588,9 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
 
 
 def _stack(trees: list):
-  """A list of equally structured NumPy pytrees → one with a leading axis."""
+  """A list of equally structured NumPy pytrees → one with a leading axis (a view for one tree)."""
+  if len(trees) == 1:
+    return jax.tree.map(lambda leaf: np.asarray(leaf)[None], trees[0])
   return jax.tree.map(lambda *leaves: np.stack(leaves), *trees)
 
 

@@ -62,12 +62,18 @@ def bin_weights(values, bins: int, value_range):
   return similarity._bspline3(s[..., None, :] - jnp.arange(bins, dtype=values.dtype)[:, None])
 
 
-def add(measure: Measure, stats, a, b, mask, ranges: Ranges | None = None):
-  """`stats` plus the chunk's sums: template values a (c,), patches b (…, c), mask (…, c)."""
+def add(measure: Measure, stats, a, b, mask, ranges: Ranges | None = None, a_bins=None,
+        b_bins=None):
+  """`stats` plus the chunk's sums: template values a (c,), patches b (…, c), mask (…, c).
+
+  For "mi", `a_bins` (bins, c) and `b_bins` (…, bins, c) are a's and b's
+  `bin_weights` where already computed.
+  """
   m = mask.astype(b.dtype)
   if measure.name == "mi":
-    wa = bin_weights(a, measure.bins, ranges.template)  # (bins, c)
-    wb = bin_weights(b, measure.bins, ranges.image) * m[..., None, :]
+    wa = bin_weights(a, measure.bins, ranges.template) if a_bins is None else a_bins
+    wb = bin_weights(b, measure.bins, ranges.image) if b_bins is None else b_bins
+    wb = wb * m[..., None, :]
     # Materialised: fused into the product, the weights were recomputed for
     # every one of its outputs.
     wa, wb = jax.lax.optimization_barrier((wa, wb))
@@ -117,8 +123,13 @@ def loss(measure: Measure, stats, count, min_valid):
   return jnp.where(enough, value, jnp.inf)
 
 
-def over_chunks(count, chunk: int, body: Callable, state):
-  """`state ← body(start, state)` for start = 0, chunk, 2·chunk, … below `count` (a traced int)."""
+def over_chunks(count, chunk: int, body: Callable, state, capacity: int | None = None):
+  """`state ← body(start, state)` for start = 0, chunk, 2·chunk, … below `count` (a traced int).
+
+  When `count` is known to be at most `capacity` <= `chunk`, one call, no loop.
+  """
+  if capacity is not None and capacity <= chunk:
+    return body(jnp.zeros([], jnp.int32), state)
   trips = (count + chunk - 1) // chunk
   return jax.lax.fori_loop(0, trips, lambda i, s: body(i * chunk, s), state)
 

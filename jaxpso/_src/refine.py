@@ -12,15 +12,15 @@ maximised, so the refinement keeps its invariances:
 * "ssd": T̃ = T.
 
 T̃ is re-estimated at every step from sums over the template's points
-(`Adaptation`), and a step is accepted only when it improves the similarity
-itself, not the SSD.  The caller linearises (it knows the image and the
+(`adapted_coefficients`), and a step is accepted only when it improves the
+similarity itself, not the SSD.  The caller linearises (it knows the image and the
 template, `jaxpso._src.register`); this module holds the photometric model
 and the damped loop.
 """
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -35,41 +35,25 @@ _DAMPING, _GROW, _SHRINK = 1e-3, 10.0, 0.3
 _MAX_REJECTED = 3
 
 
-class Adaptation(NamedTuple):
-  """What T̃ needs, summed over the valid points: for "mi" the image's intensity per template bin.
+def adapted_coefficients(similarity: str, stats, per_bin=None):
+  """c with T̃ = X·c: X the template's bin weights (bins,) per point for "mi", else [T, 1].
 
-  Attributes:
-    per_bin: (2, bins) Σ m·I·β(T) and Σ m·β(T) ("mi"; zeros otherwise).
-  """
-  per_bin: jax.Array
-
-
-def empty_adaptation(bins: int) -> Adaptation:
-  return Adaptation(jnp.zeros((2, bins), jnp.float32))
-
-
-def adapt(adaptation: Adaptation, template_bins, patch, mask) -> Adaptation:
-  """Adds a chunk ("mi"): template bin weights (bins, c), patch (c,) and mask (c,)."""
-  m = mask.astype(patch.dtype)
-  return Adaptation(adaptation.per_bin + jnp.stack([patch * m, m]) @ template_bins.T)
-
-
-def adapted_template(similarity: str, stats, adaptation: Adaptation, template, template_bins):
-  """T̃ (c,) of a chunk of template values (c,) (their bin weights (bins, c) for "mi").
-
-  `stats` are the chunk loop's similarity statistics (the means, gain and
-  bias of "ncc"), `adaptation` its per-bin sums.
+  Args:
+    similarity: "mi", "ncc" or "ssd".
+    stats: the "ncc" statistics over the valid points (`measures`).
+    per_bin: "mi": (2, bins) Σ m·I·β(T) and Σ m·β(T), the image's intensity
+      summed per template bin, and the bins' weights.
   """
   if similarity == "mi":
-    sums, counts = adaptation.per_bin
+    sums, counts = per_bin
     mean = jnp.sum(sums) / jnp.maximum(jnp.sum(counts), 1.0)
     # A pseudo-count of one pixel at the mean intensity keeps empty bins finite.
-    return ((sums + mean) / (counts + 1.0)) @ template_bins
+    return (sums + mean) / (counts + 1.0)
   if similarity == "ncc":
     _, mean_t, mean_i, var_t, _, cov = measures.ncc_moments(stats)
     gain = jnp.where(var_t > 1e-12, cov / jnp.where(var_t > 1e-12, var_t, 1.0), 0.0)
-    return mean_i + gain * (template - mean_t)
-  return template
+    return jnp.stack([gain, mean_i - gain * mean_t])
+  return jnp.asarray([1.0, 0.0], jnp.float32)
 
 
 def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, tolerance):

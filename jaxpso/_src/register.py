@@ -51,9 +51,9 @@ _TOLERANCE = 0.01
 # Two registrations agree when no template corner is further apart than this
 # (full-resolution pixels).
 _AGREE_PX = 1.0
-# Points scored per chunk by the swarm (a coarse level has 144–576) and by
-# the full-resolution check.
-_SWARM_CHUNK, _FULL_CHUNK = 128, 512
+# Points scored per chunk by Gauss–Newton, the swarm (a coarse level has
+# 144–576) and the full-resolution check.
+_GN_CHUNK, _SWARM_CHUNK, FULL_CHUNK = 1280, 256, 2048
 # The wide searches (retry, recovery) draw other swarm streams.
 _WIDE_SEED = 0x5BD1E995
 
@@ -89,7 +89,8 @@ class Context(NamedTuple):
     quads: (2, 4, 2) motion "homography": where each base puts the
       template's corners (else zeros).
     template_range: (2,) MI's binning range of the template (`measures`).
-    image_ranges: (2, 2) MI's binning range of the image at each base.
+    image_ranges: (2, 2) MI's binning range of the image at each base (the
+      second computed only where a stage starts from it, `with_range`).
     self_loss: () the template's loss against itself, `quality`'s scale.
     seed: (2,) uint32 swarm seed.
   """
@@ -208,17 +209,36 @@ class Problem:
     value = measures.loss(self.measure, stats, count, self.knobs.min_valid)
     return jnp.where(self.admissible(u, base), value, jnp.inf)
 
-  def _scores(self, h, level, index, chunk: int, lead: tuple, ranges):
-    """Similarity statistics of set `index` sampled at `level` through (lead…, 3, 3) level homographies h."""
+  def _capacity(self, index) -> int:
+    """The most points set `index` holds (static)."""
+    full = isinstance(index, int) and index == templates.FULL
+    return templates.FULL_POINTS if full else templates.LEVEL_POINTS
+
+  def _template_bins(self, index):
+    """MI: (bins, n) `measures.bin_weights` of set `index`'s values (n its capacity), once per search; else None."""
+    if self.config.similarity != "mi":
+      return None
+    values = jax.lax.dynamic_slice(self.template.values, (self.template.sets[index, 0],),
+                                   (self._capacity(index),))
+    return measures.bin_weights(values, self.config.bins, self.context.template_range)
+
+  def _scores(self, h, level, index, chunk: int, lead: tuple, ranges, bins):
+    """Similarity statistics of set `index` sampled at `level` through (lead…, 3, 3) level homographies h.
+
+    `bins`: the set's `_template_bins`.  The set is scored `chunk` points at
+    a time (in one piece when its capacity fits).
+    """
     image = atlas.level(self.context.image, level)
+    count = self.template.sets[index, 1]
 
     def body(start, stats):
-      points, values, inside = self._chunk(index, start, chunk)
-      patch, valid = image.sample(h, points)
-      return measures.add(self.measure, stats, values, patch, valid & inside, ranges)
+      points, template, inside = self._chunk(index, start, chunk)
+      patch, valid = materialized(image.sample(h, points), self.knobs)
+      weights = None if bins is None else jax.lax.dynamic_slice_in_dim(bins, start, chunk, axis=-1)
+      return measures.add(self.measure, stats, template, patch, valid & inside, ranges, weights)
 
     empty = self._empty(h, level, index, lead)
-    return measures.over_chunks(self.template.sets[index, 1], chunk, body, empty)
+    return measures.over_chunks(count, chunk, body, empty, self._capacity(index))
 
   def _empty(self, h, level, index, lead: tuple):
     """Zero statistics; for "ncc" shifted by the set's first value and the image at the template's centre."""
@@ -230,76 +250,79 @@ class Problem:
     return measures.empty(self.measure, lead, first, reference[..., 0])
 
   # ------------------------------------------------------------ Gauss–Newton
-  def _linearise(self, u, base, level):
-    """(loss, JᵀJ, Jᵀr) of the adapted SSD at u over level `level`'s set (two chunk passes)."""
-    name, bins = self.config.similarity, self.config.bins
+  def _linearise(self, u, base, level, bins):
+    """(loss, JᵀJ, Jᵀr) of the adapted SSD at u over level `level`'s set, in one chunk pass.
+
+    J = B·M: B = ∂I(W(p))/∂h per point in closed form, M = ∂h/∂u (with
+    h[2, 2] = 1).  T̃ is linear in its coefficients (per-bin means for "mi",
+    gain and bias for "ncc"), so Bᵀr = BᵀI − (BᵀX)·coefficients with X the
+    template's bin weights (or [T, 1]): one pass sums BᵀB, BᵀI, BᵀX and the
+    similarity's statistics, in one matrix product per chunk, and T̃ comes
+    after.  `bins`: the set's `_template_bins`.
+    """
+    name = self.config.similarity
     ranges = self.ranges(base)
 
-    def to_level(u):  # with h[2, 2] = 1: without the free scale, Mᵀ G M loses no precision
+    def to_level(u):  # with h[2, 2] = 1, the homography's free scale stays out of J
       h = atlas.to_level(self.homography(u, base), level)
       return h / h[2, 2]
 
     h = to_level(u)
-    image = atlas.level(self.context.image, level)
     count = self.template.sets[level, 1]
+    image = atlas.level(self.context.image, level)
 
-    def template_bins(values):
-      return measures.bin_weights(values, bins, ranges.template)
-
-    def gather(start, carry):
-      stats, adaptation, buffers = carry
-      points, values, inside = self._chunk(level, start, templates.CHUNK)
+    def sums(start, carry):
+      products, stats = carry
+      points, values, inside = self._chunk(level, start, _GN_CHUNK)
       value, gx, gy, valid, (x, y, w) = image.sample_with_gradient(h, points)
       valid = valid & inside
-      stats = measures.add(self.measure, stats, values, value, valid, ranges)
-      if name == "mi":
-        adaptation = refine.adapt(adaptation, template_bins(values), value, valid)
-      # Zero slopes past the set's end (the sampler zeroes only outside the image).
-      w = jnp.where(valid, w, jnp.inf)
-      rows = jnp.stack([value, gx / w, gy / w, valid.astype(value.dtype), x, y])
-      return stats, adaptation, jax.lax.dynamic_update_slice(buffers, rows, (0, start))
-
-    empty = (self._empty(h, level, level, ()), refine.empty_adaptation(bins),
-             jnp.zeros((6, templates.LEVEL_POINTS), jnp.float32))
-    stats, adaptation, buffers = measures.over_chunks(count, templates.CHUNK, gather, empty)
-
-    by_motion = jax.jacfwd(to_level)(u).reshape(9, -1)  # M = ∂h/∂u
-
-    def normal_equations(start, gram):
-      # J = B·M per point: B = ∂I(W(p))/∂h in closed form.  JᵀJ and Jᵀr are
-      # the Gram of [J r]: formed from the (9, 9) Gram of B instead, Mᵀ(BᵀB)M
-      # lost most of its precision in float32 (Gauss–Newton stalled 0.04 px
-      # short on a pure translation).
-      points, values, _ = self._chunk(level, start, templates.CHUNK)
-      value, gx, gy, valid, x, y = jax.lax.dynamic_slice(buffers, (0, start),
-                                                         (6, templates.CHUNK))
-      target = refine.adapted_template(name, stats, adaptation, values,
-                                       template_bins(values) if name == "mi" else None)
-      homogeneous = jnp.concatenate([points, jnp.ones_like(points[:, :1])], axis=1)
+      w = jnp.where(valid, w, jnp.inf)  # zero slopes past the set's end too
+      value, gx, gy, x, y = materialized((value, gx / w, gy / w, x, y), self.knobs)
+      px, py = points[:, 0], points[:, 1]
       across = -(gx * x + gy * y)
-      slopes = jnp.concatenate([gx[:, None] * homogeneous, gy[:, None] * homogeneous,
-                                across[:, None] * homogeneous], axis=1)
-      rows = jnp.concatenate([slopes @ by_motion, ((value - target) * valid)[:, None]], axis=1)
-      return gram + rows.T @ rows
+      # B (9, c), row-major like every operand of the product: concatenating
+      # (c, k) columns cost as much as the product.
+      slopes = jnp.stack([g * p for g in (gx, gy, across) for p in (px, py, jnp.ones_like(px))])
+      m = valid.astype(value.dtype)
+      left = [slopes, (m * value)[None]]  # summed against the right's rows
+      if name == "mi":
+        template = jax.lax.dynamic_slice_in_dim(bins, start, _GN_CHUNK, -1)  # (bins, c)
+        patch = measures.bin_weights(value, self.config.bins, ranges.image) * m
+        left += [m[None], patch]
+        right = jnp.concatenate([slopes, template])
+      else:
+        right = jnp.concatenate([slopes, values[None], jnp.ones_like(values)[None]])
+        stats = measures.add(self.measure, stats, values, value, valid)
+      return products + jnp.concatenate(left) @ right.T, stats
 
-    dim = by_motion.shape[1]
-    gram = measures.over_chunks(count, templates.CHUNK, normal_equations,
-                                jnp.zeros((dim + 1, dim + 1), jnp.float32))
+    rows = 10 + (1 + self.config.bins if name == "mi" else 0)
+    columns = 9 + (self.config.bins if name == "mi" else 2)
+    products, stats = measures.over_chunks(
+        count, _GN_CHUNK, sums,
+        (jnp.zeros((rows, columns), jnp.float32), self._empty(h, level, level, ())))
+    normal, slopes_image = products[:9, :9], products[9, :9]
+    if name == "mi":
+      stats = products[11:, 9:].T  # the joint histogram, template bins along the rows
+    coefficients = refine.adapted_coefficients(name, stats, products[9:11, 9:])
+    slopes_template = products[:9, 9:] @ coefficients
+    by_motion = jax.jacfwd(to_level)(u).reshape(9, -1)
     loss = self._loss(stats, level, u, base)
-    return loss, gram[:dim, :dim], gram[:dim, dim]
+    return (loss, by_motion.T @ normal @ by_motion,
+            by_motion.T @ (slopes_image - slopes_template))
 
-  def _level_loss(self, u, base, level):
+  def _level_loss(self, u, base, level, bins):
     h = atlas.to_level(self.homography(u, base), level)
-    stats = self._scores(h, level, level, templates.CHUNK, (), self.ranges(base))
+    stats = self._scores(h, level, level, _GN_CHUNK, (), self.ranges(base), bins)
     return self._loss(stats, level, u, base)
 
   def descend(self, u, base, top):
     """u refined by Gauss–Newton from level `top` down to full resolution → (u, steps)."""
     def body(carry):
       u, level, steps = carry
+      bins = self._template_bins(level)
       u, _, taken = refine.levenberg_marquardt(
-          u, lambda v: self._linearise(v, base, level),
-          lambda v: self._level_loss(v, base, level), self.knobs.refine_steps,
+          u, lambda v: self._linearise(v, base, level, bins),
+          lambda v: self._level_loss(v, base, level, bins), self.knobs.refine_steps,
           _TOLERANCE * jnp.exp2(level.astype(jnp.float32)))
       return u, level - 1, steps + taken
 
@@ -327,11 +350,12 @@ class Problem:
     """
     lift = self._lift(translation)
     ranges = self.ranges(base)
+    bins = self._template_bins(level)
 
     def loss_fn(x, _):  # x (n, D)
       u = x @ lift.T
       h = atlas.to_level(self.homography(u, base), level)
-      stats = self._scores(h, level, level, _SWARM_CHUNK, (x.shape[0],), ranges)
+      stats = self._scores(h, level, level, _SWARM_CHUNK, (x.shape[0],), ranges, bins)
       return self._loss(stats, level, u, base)
 
     box = jnp.full(self.dim, radius, jnp.float32)
@@ -360,22 +384,28 @@ class Problem:
     """The candidate at u: its loss over every full-resolution pixel and its `quality`."""
     h = self.homography(u, base)
     ranges = self.ranges(base)
-    image = atlas.level(self.context.image, 0)
     mi = self.config.similarity == "mi"
+
+    bins = self._template_bins(templates.FULL)
+    image = atlas.level(self.context.image, 0)
+    count = self.template.sets[templates.FULL, 1]
 
     def body(start, carry):
       stats, own = carry
-      points, values, inside = self._chunk(templates.FULL, start, _FULL_CHUNK)
-      patch, valid = image.sample(h, points)
+      points, template, inside = self._chunk(templates.FULL, start, FULL_CHUNK)
+      patch, valid = materialized(image.sample(h, points), self.knobs)
       valid = valid & inside
-      stats = measures.add(self.measure, stats, values, patch, valid, ranges)
-      if mi:  # the patch against itself, both binned over the image's range
-        own = measures.add(self.measure, own, patch, patch, valid,
-                           measures.Ranges(ranges.image, ranges.image))
+      if not mi:
+        return measures.add(self.measure, stats, template, patch, valid), own
+      # The patch against itself too, both sides binned over the image's range.
+      weights = jax.lax.dynamic_slice_in_dim(bins, start, FULL_CHUNK, axis=-1)
+      own_bins = measures.bin_weights(patch, self.config.bins, ranges.image)
+      stats = measures.add(self.measure, stats, template, patch, valid, ranges, weights, own_bins)
+      own = measures.add(self.measure, own, patch, patch, valid, None, own_bins, own_bins)
       return stats, own
 
     empty = self._empty(h, 0, templates.FULL, ())
-    stats, own = measures.over_chunks(self.template.sets[templates.FULL, 1], _FULL_CHUNK, body,
+    stats, own = measures.over_chunks(count, FULL_CHUNK, body,
                                       (empty, measures.empty(self.measure, ()) if mi else None))
     loss = self._loss(stats, templates.FULL, u, base)
     own_loss = None
@@ -410,6 +440,19 @@ def baseline(context: Context, pyramid: list, knobs: Knobs, config) -> Candidate
       loss_at, similarity=config.similarity, levels=config.levels,
       iterations=config.max_iterations)
   return problem.finish(u, 0, iterations, evaluations - 1)
+
+
+def materialized(tree, knobs: Knobs):
+  """`tree` (arrays), computed once: the branch of a conditional on data that always holds.
+
+  XLA's CPU fusion otherwise duplicates cheap producers into every consumer:
+  fused into the bins' (bins, n) weights, the image sampling that made the
+  values was recomputed for each bin (the loss took 3–4× as long).  The
+  condition reads a knob (shared by a batch), so that under `vmap` it stays
+  a conditional instead of becoming a select of both branches.
+  """
+  return jax.lax.cond(knobs.min_valid > -1.0, lambda t: t,
+                      lambda t: jax.tree.map(jnp.zeros_like, t), tree)
 
 
 def quality(loss, own_loss, self_loss, config):
@@ -553,6 +596,8 @@ def _pass(contexts: Context, state: State, knobs: Knobs, stages, config, swarm: 
   top = jnp.select([_column(stages, "top", stage) == 0, _column(stages, "top", stage) == 1],
                    [jnp.minimum(1, coarsest), coarsest], swarm_level)
   base = _column(stages, "base", stage)
+  if any(s.base for s in stages):
+    contexts = with_range(contexts, (state.stage < len(stages)) & (base == 1), config)
   count = state.stage.shape[0]
   dim = motion.dimension(config.motion, config.dof)
   zero = jnp.zeros(count, jnp.int32)
@@ -734,4 +779,16 @@ def context(image: atlas.Atlas, template: templates.Template, bases, geometry, s
                  jnp.zeros((2, 2), jnp.float32), self_loss, seed)
   if config.similarity != "mi":
     return made
-  return made._replace(image_ranges=jax.vmap(lambda b: image_range(made, b, config))(jnp.arange(2)))
+  return made._replace(image_ranges=jnp.stack([image_range(made, 0, config)] * 2))
+
+
+def with_range(contexts: Context, needed, config) -> Context:
+  """Batched contexts with the image's MI binning range at base 1 computed where `needed` (C,)."""
+  if config.similarity != "mi":
+    return contexts
+
+  def compute(contexts):
+    ranges = each(lambda c: image_range(c, 1, config), contexts)
+    return contexts._replace(image_ranges=contexts.image_ranges.at[:, 1].set(ranges))
+
+  return jax.lax.cond(jnp.any(needed), compute, lambda c: c, contexts)

@@ -20,7 +20,10 @@ their pyramid level:
 
 from __future__ import annotations
 
+import collections
+import hashlib
 import math
+import threading
 from typing import NamedTuple
 
 import jax
@@ -28,7 +31,7 @@ import numpy as np
 
 from jaxpso._src import atlas
 
-LEVEL_POINTS = 4096
+LEVEL_POINTS = 2560
 """A pyramid level's points at most (more: those of largest gradient)."""
 FULL_POINTS = 10240
 """Points of the full-resolution loss and quality at most (more: a regular subsample)."""
@@ -37,9 +40,10 @@ MIN_PIXELS = 256
 FULL = atlas.MAX_LEVELS
 """Index of the full-resolution set in `Template.sets`."""
 CHUNK = 512
-"""Every set is padded to a multiple of this: chunk loops read chunks of at most this many."""
+"""Every set is padded to a multiple of this."""
 CAPACITY = atlas.MAX_LEVELS * LEVEL_POINTS + FULL_POINTS
-"""Points of a `Template`'s arrays: every set at its largest."""
+"""Points of a `Template`'s arrays: every set at its largest (a level's `LEVEL_POINTS` read
+from its offset, or the `FULL` set's `FULL_POINTS`, stay inside)."""
 
 
 class Template(NamedTuple):
@@ -113,3 +117,29 @@ def prepare(template: np.ndarray, levels: int, pixels: float) -> Template:
     offset += -(-flat.size // CHUNK) * CHUNK
   return Template(points, values, sets, np.int32(levels),
                   np.asarray(template.shape, np.float32))
+
+
+# `prepared` keeps the last few prepared templates: aligning one template
+# against many images (or from many starts) prepares it once.
+_CACHE_SIZE = 16
+_cache: collections.OrderedDict = collections.OrderedDict()
+_lock = threading.Lock()
+
+
+def prepared(template: np.ndarray, levels: int, pixels: float) -> Template:
+  """`prepare`, or the same template's earlier preparation (keyed by its content; read-only arrays)."""
+  array = np.ascontiguousarray(template, np.float32)
+  key = (array.shape, hashlib.blake2b(array.data, digest_size=16).digest(), levels, pixels)
+  with _lock:
+    if key in _cache:
+      _cache.move_to_end(key)
+      return _cache[key]
+  result = prepare(array, levels, pixels)
+  for leaf in result:
+    if isinstance(leaf, np.ndarray):
+      leaf.setflags(write=False)
+  with _lock:
+    _cache[key] = result
+    while len(_cache) > _CACHE_SIZE:
+      _cache.popitem(last=False)
+  return result

@@ -115,9 +115,11 @@ def _predict(contexts: register.Context, knobs, config):
     problem = register.Problem(context, knobs, config)
     zero = jnp.zeros((2, problem.dim), jnp.float32)
     h = problem.homography(zero, jnp.arange(2))
-    return problem._loss(problem._scores(h, 0, templates.FULL, templates.CHUNK, (2,),
-                                         problem.ranges(1)), templates.FULL, zero, jnp.arange(2))
+    stats = problem._scores(h, 0, templates.FULL, register.FULL_CHUNK, (2,), problem.ranges(1),
+                            problem._template_bins(templates.FULL))
+    return problem._loss(stats, templates.FULL, zero, jnp.arange(2))
 
+  contexts = register.with_range(contexts, jnp.ones(contexts.seed.shape[0], bool), config)
   keep = register.each(losses, contexts)
   previous = keep[:, 0] > keep[:, 1]
 
@@ -401,7 +403,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   first_estimate = starts if geometry is None else np.broadcast_to(np.eye(4, dtype=np.float32),
                                                                    (count, 4, 4))
   mesh = sharding.batch_mesh(devices, count)
-  prepared = align._stack([templates.prepare(t, c.levels, c.pixels)
+  prepared = align._stack([templates.prepared(t, c.levels, c.pixels)
                            for t, c in zip(templates_, configs)])
   pyramid = None
   statics = config.statics()
