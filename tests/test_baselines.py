@@ -58,7 +58,8 @@ def _register(frame, template, start, *, method, similarity):
   """register.baseline on the whole image from `start` → (homography, start, loss, its, evals)."""
   config = align.TrackConfig(method=method, similarity=similarity, levels=LEVELS,
                              max_iterations=ITERATIONS.get(method, 30)).statics()
-  prepared = templates.prepare(np.asarray(template, np.float32), LEVELS, config.pixels)
+  prepared = templates.prepare(np.asarray(template, np.float32), LEVELS, config.pixels,
+                               config.bins)
   pyramid = [level[0] for level in align.template_pyramids([template], LEVELS)]
   bases = np.stack([start, start]).astype(np.float32)
   return _registered(frame, prepared, pyramid, bases, config.knobs(), config=config)
@@ -66,8 +67,7 @@ def _register(frame, template, start, *, method, similarity):
 
 @functools.partial(jax.jit, static_argnames=("config",))
 def _registered(frame, prepared, pyramid, bases, knobs, *, config):
-  context = register.context(frame, prepared, bases, None, jnp.zeros(2, jnp.uint32), knobs,
-                             config)
+  context = register.context(frame, prepared, bases, None, jnp.zeros(2, jnp.uint32), config)
   found = register.baseline(context, pyramid, knobs, config)
   start = register.Problem(context, knobs, config).homography(jnp.zeros(8), 0)
   return (found.homography, register.normalized(start), found.loss, found.num_iterations,

@@ -71,14 +71,12 @@ def _checks():
   # The frame step keeps the regions split: each device's carry holds its region.
   mesh = sharding.batch_mesh(None, 4)
   template = np.ascontiguousarray(sequence.frames[0, :32, :32])
-  prepared = align._stack([templates.prepare(template, 1, 0.25)] * 4)
+  prepared = align._stack([templates.prepare(template, 1, 0.25, 16)] * 4)
   constants = sharding.split(track_module._Constants(prepared, None, np.zeros((4, 2), np.uint32),
                                                      None), mesh)
   assert shards(constants.template.values) == {d: (1, templates.CAPACITY) for d in devices}
   eye = np.stack([np.eye(3, dtype=np.float32)] * 4)
-  carry = sharding.split(track_module._Carry(eye, eye, np.ones(4, np.int32),
-                                             np.full(4, np.nan, np.float32),
-                                             np.zeros((4, 2), np.float32)), mesh)
+  carry = sharding.split(track_module._Carry(eye, eye, np.ones(4, np.int32)), mesh)
   image = sharding.replicate(atlas.build(np.asarray(sequence.frames[1]), 1), mesh)
   knobs = sharding.replicate(jax.tree.map(jnp.asarray, config.knobs()), mesh)
   carry, out = track_module._frame_step(carry, image, constants, knobs, config=config.statics())

@@ -341,7 +341,7 @@ def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, s
   coordinates twice (or (N, 2, 4, 4) identity poses, with `geometry` the
   `motion.Plane`s in window coordinates); seeds (N, 2) uint32.
   """
-  contexts = register.each(lambda *a: register.context(*a, knobs, config), images, prepared, bases,
+  contexts = register.each(lambda *a: register.context(*a, config), images, prepared, bases,
                            geometry, seeds)
   found = register.run(contexts, knobs, "align", config).best
   pose = None
@@ -356,7 +356,7 @@ def _align_baseline(images: atlas.Atlas, pyramids: list, prepared: templates.Tem
                     geometry, seeds, offsets, knobs: register.Knobs, *,
                     config: TrackConfig) -> AlignResult:
   """`_align` with `config.method`'s gradient registration; `pyramids` the templates' levels, (N, h_l, w_l) each."""
-  contexts = register.each(lambda *a: register.context(*a, knobs, config), images, prepared, bases,
+  contexts = register.each(lambda *a: register.context(*a, config), images, prepared, bases,
                            geometry, seeds)
   found = register.each(lambda c, p: register.baseline(c, p, knobs, config), contexts, pyramids)
   pose = None
@@ -565,7 +565,7 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
     bases = np.broadcast_to(np.eye(4, dtype=np.float32), (len(starts), 2, 4, 4))
   else:
     bases = np.repeat((to_window @ np.stack(starts))[:, None], 2, axis=1).astype(np.float32)
-  prepared = _stack([templates.prepared(t, c.levels, c.pixels)
+  prepared = _stack([templates.prepared(t, c.levels, c.pixels, c.bins)
                      for t, c in zip(templates_, configs)])
   arguments = (_stack(pyramids), prepared, bases, geometry, element_seeds(key, len(starts)),
                offsets)

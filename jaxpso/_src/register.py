@@ -88,7 +88,7 @@ class Context(NamedTuple):
     geometry: `motion.Plane` for motion "plane", else None.
     quads: (2, 4, 2) motion "homography": where each base puts the
       template's corners (else zeros).
-    template_range: (2,) MI's binning range of the template (`measures`).
+    template_range: (2,) MI's binning range of the template (`Template.value_range`).
     image_ranges: (2, 2) MI's binning range of the image at each base (the
       second computed only where a stage starts from it, `with_range`).
     self_loss: () the template's loss against itself, `quality`'s scale.
@@ -144,22 +144,6 @@ def _full_set(template: templates.Template):
   points = jax.lax.dynamic_slice(template.points, (offset, 0), (templates.FULL_POINTS, 2))
   values = jax.lax.dynamic_slice(template.values, (offset,), (templates.FULL_POINTS,))
   return points, values, jnp.arange(templates.FULL_POINTS) < count
-
-
-def template_constants(template: templates.Template, min_valid, config):
-  """() the template's loss against itself and (2,) its MI binning range."""
-  measure = measure_of(config)
-  _, values, inside = _full_set(template)
-  value_range = measures.intensity_range(values, inside)
-  count = template.sets[templates.FULL, 1]
-  if config.similarity == "ssd":  # SSD's quality scale: the template's variance
-    n = jnp.maximum(jnp.sum(inside), 1)
-    mean = jnp.sum(jnp.where(inside, values, 0.0)) / n
-    return jnp.sum(jnp.where(inside, (values - mean) ** 2, 0.0)) / n, value_range
-  stats = measures.empty(measure, (), values[0], values[0])
-  stats = measures.add(measure, stats, values, values, inside,
-                       measures.Ranges(value_range, value_range))
-  return measures.loss(measure, stats, count, min_valid), value_range
 
 
 class Problem:
@@ -767,11 +751,11 @@ def image_range(context: Context, base, config) -> jax.Array:
                     jnp.maximum(hi, context.template_range[1])])
 
 
-def context(image: atlas.Atlas, template: templates.Template, bases, geometry, seed, knobs: Knobs,
-            config, constants=None) -> Context:
-  """One registration's `Context`; `constants` (self loss, template range) are computed unless given."""
-  self_loss, template_range = (template_constants(template, knobs.min_valid, config)
-                               if constants is None else constants)
+def context(image: atlas.Atlas, template: templates.Template, bases, geometry, seed,
+            config) -> Context:
+  """One registration's `Context`."""
+  self_loss = template.self_loss[templates.SIMILARITIES.index(config.similarity)]
+  template_range = template.value_range
   quads = jnp.zeros((2, 4, 2), jnp.float32)
   if config.motion == "homography":
     quads = homography.apply_to_points(bases, motion.corners(template.size))[0]

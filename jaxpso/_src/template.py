@@ -16,6 +16,9 @@ their pyramid level:
   a large template costs no more than a 128×128 one.
 * `FULL`: every full-resolution pixel, the final loss and `quality`'s; over
   `FULL_POINTS`, a regular subsample (every s-th row and column).
+
+The constants of the similarities (the template's MI binning range and its
+loss against itself, `quality`'s scale) are computed here too, once.
 """
 
 from __future__ import annotations
@@ -57,12 +60,22 @@ class Template(NamedTuple):
       ((0, 0) beyond `levels`), then of the `FULL` set.
     levels: () int32 pyramid levels in use.
     size: (2,) float32 the template's (h, w) in pixels.
+    value_range: (2,) float32 MI's binning range of the template (`value_range`).
+    self_loss: (3,) float32 the template's loss against itself under "mi"
+      (binned over `value_range` with `bins` bins), "ncc" and "ssd" (its
+      variance): `quality`'s scale.
   """
   points: jax.Array
   values: jax.Array
   sets: jax.Array
   levels: jax.Array
   size: jax.Array
+  value_range: jax.Array
+  self_loss: jax.Array
+
+
+SIMILARITIES = ("mi", "ncc", "ssd")
+"""The order of `Template.self_loss`."""
 
 
 def _largest_gradient(image: np.ndarray, count: int) -> np.ndarray:
@@ -84,13 +97,55 @@ def _subsample(shape) -> np.ndarray:
   return grid.reshape(-1)
 
 
-def prepare(template: np.ndarray, levels: int, pixels: float) -> Template:
+# MI bins intensities over the range between these quantiles, widened by
+# _RANGE_MARGIN of its span each way and at least _MIN_SPAN wide, so that a
+# low-contrast template fills the bins instead of two or three of them
+# (benchmarks/README.md, convergence).  The quantiles are read off a
+# histogram of _RANGE_HISTOGRAM bins between the extremes.
+_RANGE_QUANTILES, _RANGE_MARGIN, _MIN_SPAN = (0.01, 0.99), 0.1, 0.05
+_RANGE_HISTOGRAM = 1024
+
+
+def value_range(values: np.ndarray) -> np.ndarray:
+  """(2,) float32 MI's binning range of intensities (n,) (`measures.intensity_range` on the host)."""
+  least, span = values.min(), values.max() - values.min()
+  span = span if span > 0 else 1.0
+  index = np.clip(((values - least) / span * _RANGE_HISTOGRAM).astype(np.int64), 0,
+                  _RANGE_HISTOGRAM - 1)
+  cumulative = np.cumsum(np.bincount(index, minlength=_RANGE_HISTOGRAM))
+  found = np.searchsorted(cumulative, np.asarray(_RANGE_QUANTILES) * cumulative[-1])
+  lo, hi = least + (found + 0.5) * (span / _RANGE_HISTOGRAM)
+  half = max(hi - lo, _MIN_SPAN) * (0.5 + _RANGE_MARGIN)
+  return np.array([(lo + hi) / 2 - half, (lo + hi) / 2 + half], np.float32)
+
+
+def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
+  """(3,) float32 the loss of intensities (n,) against themselves: −MI, −NCC, SSD's scale (variance)."""
+  lo, hi = (float(v) for v in value_range_)
+  s = 1.0 + (np.clip(values, lo, hi) - lo) * ((bins - 3) / (hi - lo))
+  d = np.abs(s[:, None] - np.arange(bins))
+  weights = (np.maximum(2.0 - d, 0.0) ** 3 - 4.0 * np.maximum(1.0 - d, 0.0) ** 3) / 6.0
+  joint = weights.T @ weights
+  p = joint / joint.sum()
+
+  def entropy(q):
+    q = q[q > 0]
+    return -np.sum(q * np.log(q))
+
+  mi = entropy(p.sum(0)) + entropy(p.sum(1)) - entropy(p)
+  variance = values.var()
+  textured = variance > (1e-6 * (1.0 + abs(values.mean()))) ** 2
+  return np.array([-mi, -1.0 if textured else 0.0, variance], np.float32)
+
+
+def prepare(template: np.ndarray, levels: int, pixels: float, bins: int) -> Template:
   """(h, w) float32 template → its `Template` (NumPy arrays).
 
   Args:
     template: (h, w) grey template; `levels` levels must stay at least 2×2.
     levels: pyramid levels, 1 to MAX_LEVELS.
     pixels: fraction of level 0's pixels (largest gradient) the refinement uses.
+    bins: MI's histogram bins (for `Template.self_loss`).
   """
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
 
@@ -115,8 +170,10 @@ def prepare(template: np.ndarray, levels: int, pixels: float) -> Template:
     values[offset:offset + flat.size] = image.reshape(-1)[flat]
     sets[index] = offset, flat.size
     offset += -(-flat.size // CHUNK) * CHUNK
-  return Template(points, values, sets, np.int32(levels),
-                  np.asarray(template.shape, np.float32))
+  full = chosen[FULL][0].reshape(-1)[chosen[FULL][1]].astype(np.float64)
+  value_range_ = value_range(full)
+  return Template(points, values, sets, np.int32(levels), np.asarray(template.shape, np.float32),
+                  value_range_, self_losses(full, bins, value_range_))
 
 
 # `prepared` keeps the last few prepared templates: aligning one template
@@ -126,15 +183,15 @@ _cache: collections.OrderedDict = collections.OrderedDict()
 _lock = threading.Lock()
 
 
-def prepared(template: np.ndarray, levels: int, pixels: float) -> Template:
+def prepared(template: np.ndarray, levels: int, pixels: float, bins: int) -> Template:
   """`prepare`, or the same template's earlier preparation (keyed by its content; read-only arrays)."""
   array = np.ascontiguousarray(template, np.float32)
-  key = (array.shape, hashlib.blake2b(array.data, digest_size=16).digest(), levels, pixels)
+  key = (array.shape, hashlib.blake2b(array.data, digest_size=16).digest(), levels, pixels, bins)
   with _lock:
     if key in _cache:
       _cache.move_to_end(key)
       return _cache[key]
-  result = prepare(array, levels, pixels)
+  result = prepare(array, levels, pixels, bins)
   for leaf in result:
     if isinstance(leaf, np.ndarray):
       leaf.setflags(write=False)

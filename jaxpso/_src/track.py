@@ -86,8 +86,6 @@ class _Carry(NamedTuple):
   estimate: jax.Array  # (R, 3, 3) homography or (R, 4, 4) pose: the last good estimate
   velocity: jax.Array  # same shape: estimate_t · estimate_{t-1}⁻¹
   frame: jax.Array  # (R,) int32 index of the next frame
-  self_loss: jax.Array  # (R,) the template's loss against itself (NaN until frame 1)
-  template_range: jax.Array  # (R, 2) its MI binning range
 
 
 def _inverse(m):
@@ -97,15 +95,6 @@ def _inverse(m):
 
 def _frame_seed(seed, frame):
   return jnp.stack([seed[0], pso._mix(seed[1] ^ pso._mix(frame.astype(jnp.uint32)))])
-
-
-def _constants(carry: _Carry, template, knobs, config):
-  """(self loss, template range) of every region: computed at the first step, then carried."""
-  def compute(_):
-    return register.each(lambda t: register.template_constants(t, knobs.min_valid, config),
-                         template)
-  return jax.lax.cond(jnp.any(jnp.isnan(carry.self_loss)), compute,
-                      lambda _: (carry.self_loss, carry.template_range), None)
 
 
 def _predict(contexts: register.Context, knobs, config):
@@ -135,14 +124,11 @@ def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs:
                 *, config: align.TrackConfig):
   """One frame of R regions: (carry, the frame's atlas, shared (1-D pixels) or one per region) →
   (carry, per-frame outputs, each with the leading R)."""
-  self_loss, template_range = _constants(carry, constants.template, knobs, config)
   seeds = jax.vmap(_frame_seed)(constants.seed, carry.frame)
   predicted = jnp.where(knobs.predict, carry.velocity @ carry.estimate, carry.estimate)
   bases = jnp.stack([predicted, carry.estimate], axis=1)
-  contexts = register.each(
-      lambda image, template, bases, geometry, seed, own, value_range: register.context(
-          image, template, bases, geometry, seed, knobs, config, (own, value_range)),
-      image, constants.template, bases, constants.geometry, seeds, self_loss, template_range)
+  contexts = register.each(lambda *a: register.context(*a, config), image, constants.template,
+                           bases, constants.geometry, seeds)
   contexts = jax.lax.cond(knobs.predict, lambda c: _predict(c, knobs, config), lambda c: c,
                           contexts)
   if config.method == "pso":
@@ -175,7 +161,7 @@ def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs:
   outputs = dict(homography=h, score=align.score_sign(config) * found.loss, quality=quality,
                  status=status.astype(jnp.int32), estimate=estimate,
                  num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
-  return _Carry(estimate, velocity, carry.frame + 1, self_loss, template_range), outputs
+  return _Carry(estimate, velocity, carry.frame + 1), outputs
 
 
 def _last_homography(carry: _Carry, constants: _Constants, config):
@@ -186,12 +172,6 @@ def _last_homography(carry: _Carry, constants: _Constants, config):
   return jax.vmap(lambda e, g, size: motion.to_homography(
       zero, base=e, geometry=g, shape=size, motion=config.motion, dof=config.dof))(
           carry.estimate, constants.geometry, constants.template.size)
-
-
-@functools.partial(jax.jit, static_argnames=("config",))
-def _own_loss(template, knobs, config):
-  """() the template's loss against itself (frame 0's score when there is no other frame)."""
-  return register.template_constants(template, knobs.min_valid, config)
 
 
 # `track` moves the per-frame outputs to the host in chunks of this many
@@ -403,7 +383,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   first_estimate = starts if geometry is None else np.broadcast_to(np.eye(4, dtype=np.float32),
                                                                    (count, 4, 4))
   mesh = sharding.batch_mesh(devices, count)
-  prepared = align._stack([templates.prepared(t, c.levels, c.pixels)
+  prepared = align._stack([templates.prepared(t, c.levels, c.pixels, c.bins)
                            for t, c in zip(templates_, configs)])
   pyramid = None
   statics = config.statics()
@@ -414,13 +394,12 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
                                         pyramid), mesh)
   carry = sharding.split(_Carry(
       first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32), (count, size, size)),
-      np.ones(count, np.int32), np.full(count, np.nan, np.float32),
-      np.zeros((count, 2), np.float32)), mesh)
+      np.ones(count, np.int32)), mesh)
   knobs = sharding.replicate(jax.tree.map(jnp.asarray, config.knobs()), mesh)
   capacity = atlas.capacity(sum(h * w for h, w in atlas.level_shapes(frame_shape, levels)))
 
   chunks = [{k: v[:, None] for k, v in dict(
-      homography=starts, score=np.full(count, np.nan, np.float32),
+      homography=starts, score=np.zeros(count, np.float32),
       quality=np.ones(count, np.float32),
       status=np.full(count, TrackStatus.TRACKED, np.int32), estimate=np.asarray(first_estimate),
       num_iterations=np.zeros(count, np.int32),
@@ -450,11 +429,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   if outputs:
     chunks.append(_to_host(outputs))
   stacked = {k: np.concatenate([c[k][:count] for c in chunks], axis=1) for k in chunks[0]}
-  if len(chunks) > 1:  # frame 0's score: the template against itself
-    self_loss = sharding.to_host(carry.self_loss)[:count]
-  else:
-    self_loss = np.asarray(jax.vmap(lambda t: _own_loss(t, config.knobs(), statics)[0])(
-        jax.tree.map(jnp.asarray, prepared)))
+  self_loss = prepared.self_loss[:, templates.SIMILARITIES.index(config.similarity)]
   stacked["score"][:, 0] = 0.0 if config.similarity == "ssd" else -self_loss
   own = stacked["homography"].astype(np.float64)
   own = own / own[..., 2:, 2:]
