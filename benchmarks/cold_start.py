@@ -86,7 +86,7 @@ def child_phases() -> dict:
   import jax
   import numpy as np
   import jaxpso
-  from jaxpso._src import align, programs, track
+  from jaxpso._src import align, track
 
   rows = {}
 
@@ -94,8 +94,7 @@ def child_phases() -> dict:
     program = getattr(module, name)
 
     def measured(*args, **static):
-      jitted = jax.jit(program._fun, static_argnames=tuple(static),
-                       compiler_options=programs.compiler_options())
+      jitted = jax.jit(program._fun, static_argnames=tuple(static))
       t0 = time.process_time()
       traced = jitted.trace(*args, **static)
       t1 = time.process_time()

@@ -119,20 +119,6 @@ def test_numpy_then_jax_arrays_share_one_program():
   assert _delta(before) == dict(compiled=1, loaded=0, reused=1)
 
 
-def test_compiler_options_turn_off_ynnpack_fusions_where_supported():
-  options = programs.compiler_options()
-  assert options in (None, {"xla_cpu_experimental_ynn_fusion_type": ""})
-  a = jax.random.uniform(jax.random.key(0), (4, 16, 64))
-  b = jax.random.uniform(jax.random.key(1), (4, 64, 16))
-  np.testing.assert_allclose(_histograms_program(a, b), jax.jit(_histograms)(a, b), rtol=1e-5)
-  programs.clear()
-  before = programs.counts()
-  text = _histograms_program.compiled(a, b).as_text()  # as loaded from disk
-  assert _delta(before)["loaded"] == 1
-  if options is not None:
-    assert "__ynn_fusion" not in text
-
-
 def test_unknown_keywords_are_a_type_error_naming_them():
   with pytest.raises(TypeError, match="'offset'"):
     _affine(*_data(), offset=1.0)

@@ -23,19 +23,11 @@ Only programs on the default device are written: a program sharded over
 several devices, taking a static argument whose `repr` is an address (a
 function) or defined inside a function stays in memory only.
 
-Compiler options (`compiler_options`): XLA's CPU backend hands dot products
-to YNNPACK fusions by default (jaxlib 0.10).  The tracker's dots are batches
-of small products (the soft joint histograms of MI, (bins, h·w) × (h·w,
-bins) per region or particle, and Gauss–Newton's Gram matrices), and there
-the YNNPACK fusions ran several times slower than XLA's own code: one (64,
-16, 2304) × (64, 2304, 16) histogram product inside the 64-region frame step
-took 18 ms per call in a profile, against 1.5 ms for the same product
-compiled alone.  With them off (benchmarks/batch.py's regions, 40 frames,
-one run): one region 2.71 → 2.04 ms per frame, 64 regions 1.54 → 1.42 ms per
-region-frame; no change measured for `align` (30 alignments at σ = 8 px:
-medians 1.7–2.5 ms either way).  The option is set per program, so a user's
-other programs keep XLA's defaults.  It is an XLA:CPU option (not tried on a
-GPU backend; a backend or jaxlib that rejects it compiles without it).
+Compiler options: XLA's defaults.  An earlier tracker turned XLA:CPU's
+YNNPACK dot fusions off (batched MI histograms ran slower in them); the
+point-set registration's products are faster with them (one region: 3.5–3.8
+against 4.6–4.9 ms per frame; 64 regions: 235 against 210 templates × frames
+per second; benchmarks/README.md, cold start).
 """
 
 from __future__ import annotations
@@ -66,7 +58,6 @@ MAX_PROGRAMS = 16
 MAX_CACHE_BYTES = 2 * 1024**3
 """Default bound of the disk cache's entries, in bytes (`$JAXPSO_CACHE_MAX_BYTES` overrides it)."""
 
-_NO_YNN = {"xla_cpu_experimental_ynn_fusion_type": ""}
 _CONFIG = ("jax_enable_x64", "jax_default_matmul_precision", "jax_numpy_dtype_promotion",
            "jax_default_prng_impl", "jax_threefry_partitionable", "jax_default_device")
 _OFF = ("off", "0", "none", "")
@@ -84,16 +75,6 @@ _max_programs: int | None = MAX_PROGRAMS
 _dir_setting = _UNSET  # set_cache_dir's path or None; _UNSET: the environment's, read at first use
 _dir: pathlib.Path | None = None  # the checked directory, None when off
 _dir_checked = False
-
-
-@functools.cache
-def compiler_options() -> dict | None:
-  """The XLA options of every program: YNNPACK fusions off where this jaxlib knows the option, else None."""
-  try:
-    jax.jit(lambda x: x + 1, compiler_options=_NO_YNN).lower(0.0).compile()
-  except Exception:  # an older or newer jaxlib without the option: XLA's defaults
-    return None
-  return _NO_YNN
 
 
 class Program:
@@ -191,8 +172,7 @@ class Program:
     def program(*args, **static):  # new per compilation: JAX's caches keyed weakly on it let go with it
       return fun(*args, **static)
 
-    compiled = jax.jit(program, static_argnames=self._static, compiler_options=compiler_options()
-                       ).lower(*args, **static).compile()
+    compiled = jax.jit(program, static_argnames=self._static).lower(*args, **static).compile()
     _count("compiled")
     if path is not None:
       _store(path, compiled)
@@ -455,4 +435,4 @@ def _environment() -> str:
       f"backend {device.client.platform} {device.client.platform_version} {device.device_kind} "
       f"{jax.device_count()} devices {jax.process_count()} processes",
       f"cpu {cpu}", f"XLA_FLAGS {os.environ.get('XLA_FLAGS', '')}",
-      f"options {compiler_options()!r}", f"jaxpso {source.hexdigest()}"))
+      f"jaxpso {source.hexdigest()}"))

@@ -264,31 +264,37 @@ class Problem:
       value, gx, gy, x, y = materialized((value, gx / w, gy / w, x, y), self.knobs)
       px, py = points[:, 0], points[:, 1]
       across = -(gx * x + gy * y)
-      # B (9, c), row-major like every operand of the product: concatenating
-      # (c, k) columns cost as much as the product.
+      # B (9, c), row-major like every operand of the products: concatenating
+      # (c, k) columns cost as much as the products.
       slopes = jnp.stack([g * p for g in (gx, gy, across) for p in (px, py, jnp.ones_like(px))])
       m = valid.astype(value.dtype)
-      left = [slopes, (m * value)[None]]  # summed against the right's rows
-      if name == "mi":
-        template = jax.lax.dynamic_slice_in_dim(bins, start, _GN_CHUNK, -1)  # (bins, c)
-        patch = measures.bin_weights(value, self.config.bins, ranges.image) * m
-        left += [m[None], patch]
-        right = jnp.concatenate([slopes, template])
-      else:
+      left = jnp.concatenate([slopes, (m * value)[None]])
+      if name != "mi":
         right = jnp.concatenate([slopes, values[None], jnp.ones_like(values)[None]])
         stats = measures.add(self.measure, stats, values, value, valid)
-      return products + jnp.concatenate(left) @ right.T, stats
+        return products + left @ right.T, stats
+      # [B; m·I]·[B; X]ᵀ, and the histogram with T̃'s sums: [m; β(I)·m]·Xᵀ.
+      template = jax.lax.dynamic_slice_in_dim(bins, start, _GN_CHUNK, -1)  # X (bins, c)
+      patch = measures.bin_weights(value, self.config.bins, ranges.image) * m
+      slopes_part, bins_part = products
+      return (slopes_part + left @ jnp.concatenate([slopes, template]).T,
+              bins_part + jnp.concatenate([m[None], patch]) @ template.T), stats
 
-    rows = 10 + (1 + self.config.bins if name == "mi" else 0)
-    columns = 9 + (self.config.bins if name == "mi" else 2)
-    products, stats = measures.over_chunks(
-        count, _GN_CHUNK, sums,
-        (jnp.zeros((rows, columns), jnp.float32), self._empty(h, level, level, ())))
-    normal, slopes_image = products[:9, :9], products[9, :9]
+    bins_count = self.config.bins
     if name == "mi":
-      stats = products[11:, 9:].T  # the joint histogram, template bins along the rows
-    coefficients = refine.adapted_coefficients(name, stats, products[9:11, 9:])
-    slopes_template = products[:9, 9:] @ coefficients
+      empty = (jnp.zeros((10, 9 + bins_count), jnp.float32),
+               jnp.zeros((1 + bins_count, bins_count), jnp.float32))
+    else:
+      empty = jnp.zeros((10, 11), jnp.float32)
+    products, stats = measures.over_chunks(count, _GN_CHUNK, sums,
+                                           (empty, self._empty(h, level, level, ())))
+    per_bin = None
+    if name == "mi":
+      products, bins_part = products
+      stats = bins_part[1:].T  # the joint histogram, template bins along the rows
+      per_bin = jnp.stack([products[9, 9:], bins_part[0]])
+    normal, slopes_image = products[:9, :9], products[9, :9]
+    slopes_template = products[:9, 9:] @ refine.adapted_coefficients(name, stats, per_bin)
     by_motion = jax.jacfwd(to_level)(u).reshape(9, -1)
     loss = self._loss(stats, level, u, base)
     return (loss, by_motion.T @ normal @ by_motion,
