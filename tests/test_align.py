@@ -10,7 +10,6 @@ import numpy as np
 import pytest
 
 import jaxpso
-from jaxpso._src import align as align_module
 from jaxpso._src import plane
 from jaxpso._src import programs
 from jaxpso._src.data import load_image

@@ -85,6 +85,8 @@ _TILTED = np.array([[1, 0, 48], [0, 1, 32], [-0.1, 0, 1]], np.float32)  # w < 0 
     ("template-too-small", lambda: jaxpso.align(IMAGE, TEMPLATE[:16, :16], START,
                                                 config=jaxpso.TrackConfig(levels=4)),
      ValueError, "template", r"\(16, 16\).*levels=4"),
+    ("template-below-range", lambda: jaxpso.align(IMAGE, TEMPLATE[:6, :30], START), ValueError,
+     "template", r"\(6, 30\) is outside the supported sizes: every side must be 8 to 4096"),
     ("homography-2x2", lambda: jaxpso.align(IMAGE, TEMPLATE, np.eye(2)), ValueError,
      "init_homography", r"\(2, 2\)"),
     ("homography-text", lambda: jaxpso.align(IMAGE, TEMPLATE, np.full((3, 3), "1")), ValueError,

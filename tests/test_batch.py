@@ -15,8 +15,6 @@ import numpy as np
 import pytest
 
 import jaxpso
-from jaxpso._src import align as align_module
-from jaxpso._src import track as track_module
 from jaxpso.data import load_image
 from jaxpso._src import programs
 from jaxpso._src import register

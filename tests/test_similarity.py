@@ -523,3 +523,16 @@ def test_bad_input():
   _expect(TypeError, r"^a\b.*int32", similarity.entropy, ints)
   _expect(TypeError, r"^a\b.*int32", similarity.soft_bins, ints)
   _expect(ValueError, r"^a\b.*\(5,\)", similarity.entropy, np.zeros(5, np.float32))
+
+
+def test_template_self_losses_match_the_measures():
+  # The template's loss against itself is computed once on the host
+  # (`template.self_losses`, quality's scale); it must equal the device measures.
+  from jaxpso._src import template
+  a = _camera_patch(100, 200)
+  value_range = template.value_range(a.reshape(-1).astype(np.float64))
+  mi, ncc, ssd_scale = template.self_losses(a.reshape(-1).astype(np.float64), 8, value_range)
+  got = _measures(a, a, bins=8, value_range=tuple(float(v) for v in value_range))
+  np.testing.assert_allclose(-mi, got["mi"], rtol=1e-5)
+  assert ncc == -1.0 and got["ncc"] == pytest.approx(1.0, abs=1e-5)
+  np.testing.assert_allclose(ssd_scale, a.var(), rtol=1e-5)

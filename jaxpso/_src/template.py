@@ -123,9 +123,15 @@ def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.n
   """(3,) float32 the loss of intensities (n,) against themselves: −MI, −NCC, SSD's scale (variance)."""
   lo, hi = (float(v) for v in value_range_)
   s = 1.0 + (np.clip(values, lo, hi) - lo) * ((bins - 3) / (hi - lo))
-  d = np.abs(s[:, None] - np.arange(bins))
-  weights = (np.maximum(2.0 - d, 0.0) ** 3 - 4.0 * np.maximum(1.0 - d, 0.0) ** 3) / 6.0
-  joint = weights.T @ weights
+  # Each intensity weighs its 4 nearest bins (cubic B-spline), scattered into
+  # a dense (n, bins + 1) matrix; column `bins` only ever gets weight 0 (s = bins − 2).
+  nearest = np.floor(s).astype(np.int64)[:, None] + np.arange(-1, 3)
+  d = np.abs(s[:, None] - nearest)
+  weights = np.zeros((s.size, bins + 1))
+  np.put_along_axis(weights, nearest,
+                    (np.maximum(2.0 - d, 0.0) ** 3 - 4.0 * np.maximum(1.0 - d, 0.0) ** 3) / 6.0,
+                    axis=1)
+  joint = weights[:, :bins].T @ weights[:, :bins]
   p = joint / joint.sum()
 
   def entropy(q):
