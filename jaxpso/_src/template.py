@@ -123,15 +123,17 @@ def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.n
   """(3,) float32 the loss of intensities (n,) against themselves: −MI, −NCC, SSD's scale (variance)."""
   lo, hi = (float(v) for v in value_range_)
   s = 1.0 + (np.clip(values, lo, hi) - lo) * ((bins - 3) / (hi - lo))
-  # Each intensity weighs its 4 nearest bins (cubic B-spline), scattered into
-  # a dense (n, bins + 1) matrix; column `bins` only ever gets weight 0 (s = bins − 2).
-  nearest = np.floor(s).astype(np.int64)[:, None] + np.arange(-1, 3)
-  d = np.abs(s[:, None] - nearest)
-  weights = np.zeros((s.size, bins + 1))
-  np.put_along_axis(weights, nearest,
-                    (np.maximum(2.0 - d, 0.0) ** 3 - 4.0 * np.maximum(1.0 - d, 0.0) ** 3) / 6.0,
-                    axis=1)
-  joint = weights[:, :bins].T @ weights[:, :bins]
+  # Each intensity weighs bins ⌊s⌋ − 1 … ⌊s⌋ + 2 (the cubic B-spline's four
+  # pieces at t = s − ⌊s⌋), scattered into a dense (n, bins + 3) matrix
+  # (the columns past `bins` only ever get weight 0, at s = bins − 2).
+  whole = np.floor(s)
+  t = s - whole
+  pieces = np.stack([(1 - t) ** 3, 3 * t ** 3 - 6 * t ** 2 + 4, -3 * t ** 3 + 3 * t ** 2 + 3 * t + 1,
+                     t ** 3], axis=1) / 6.0
+  rows = np.arange(s.size) * (bins + 3) + whole.astype(np.int64) - 1
+  dense = np.zeros((s.size, bins + 3))
+  dense.reshape(-1)[(rows[:, None] + np.arange(4)).reshape(-1)] = pieces.reshape(-1)
+  joint = dense[:, :bins].T @ dense[:, :bins]
   p = joint / joint.sum()
 
   def entropy(q):
