@@ -30,9 +30,10 @@ from jaxpso._src import measures
 # Damping of the first step, relative to the diagonal of JᵀJ; multiplied by
 # _GROW after a rejected step and by _SHRINK after an accepted one.
 _DAMPING, _GROW, _SHRINK = 1e-3, 10.0, 0.3
-# Stop after this many rejected steps in a row (the damping then barely
-# changes the step any more).
-_MAX_REJECTED = 3
+# Stop after this many rejected steps in a row, or after one rejected step
+# moving no parameter by more than _NOISE × the tolerance: there the loss no
+# longer resolves the moves (more steps would only spend evaluations).
+_MAX_REJECTED, _NOISE = 3, 4.0
 
 
 def adapted_coefficients(similarity: str, stats, per_bin=None):
@@ -59,8 +60,8 @@ def adapted_coefficients(similarity: str, stats, per_bin=None):
 def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, tolerance):
   """Damped Gauss–Newton steps, each accepted only if it lowers the loss.
 
-  A rejected step grows the damping and is retried from the best estimate,
-  so the refinement never loses ground (and a T̃ gone flat from a poor
+  A rejected step grows the damping (to at least `_DAMPING` × `_GROW`) and
+  is retried from the best estimate, so the refinement never loses ground (and a T̃ gone flat from a poor
   start cannot drag the warp to a flat region).
 
   Args:
@@ -70,7 +71,8 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
     steps: () int32 linearisations at most; fewer once a step moves no
       parameter by more than `tolerance` or after `_MAX_REJECTED` rejected
       steps in a row.
-    tolerance: () stop threshold, in units of u.
+    tolerance: () stop threshold, in units of u (a rejected step under
+      `_NOISE` × tolerance stops too).
 
   Returns:
     ((D,) the lowest-loss parameters visited, () that loss, () int32 loss
@@ -79,30 +81,35 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
   d = u0.shape[0]
 
   def body(carry):
-    step, u, best_u, best_loss, normal, gradient, damping, rejected, _ = carry
+    step, u, best_u, best_loss, normal, gradient, damping, rejected, _, _ = carry
     loss, a, g = linearise(u)
     better = loss < best_loss
+    settled = ~better & (jnp.max(jnp.abs(u - best_u)) <= _NOISE * tolerance)
     best_u = jnp.where(better, u, best_u)
     best_loss = jnp.where(better, loss, best_loss)
     normal = jnp.where(better, a, normal)
     gradient = jnp.where(better, g, gradient)
-    damping = jnp.where(better, damping * _SHRINK, damping * _GROW)
+    damping = jnp.where(better, damping * _SHRINK, jnp.maximum(damping, _DAMPING) * _GROW)
     rejected = jnp.where(better, 0, rejected + 1)
     diagonal = jnp.diagonal(normal)
     lhs = normal + jnp.diag(damping * diagonal + 1e-9 * (1.0 + jnp.max(diagonal)))
     delta = jnp.linalg.solve(lhs, -gradient)
     delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
-    return step + 1, best_u + delta, best_u, best_loss, normal, gradient, damping, rejected, delta
+    return (step + 1, best_u + delta, best_u, best_loss, normal, gradient, damping, rejected,
+            delta, settled)
 
   def running(carry):
-    step, *_, rejected, delta = carry
-    return (step < steps) & (jnp.max(jnp.abs(delta)) > tolerance) & (rejected < _MAX_REJECTED)
+    step, *_, rejected, delta, settled = carry
+    return ((step < steps) & (jnp.max(jnp.abs(delta)) > tolerance) & (rejected < _MAX_REJECTED)
+            & ~settled)
 
   zero = jnp.zeros(d, u0.dtype)
   carry = (jnp.zeros([], jnp.int32), u0, u0, jnp.asarray(jnp.inf, u0.dtype),
            jnp.eye(d, dtype=u0.dtype), zero, jnp.asarray(_DAMPING, u0.dtype),
-           jnp.zeros([], jnp.int32), zero + jnp.inf)
-  taken, u, best_u, best_loss, *_ = jax.lax.while_loop(running, body, carry)
-  last = loss_at(u)
+           jnp.zeros([], jnp.int32), zero + jnp.inf, jnp.asarray(False))
+  taken, u, best_u, best_loss, *_, settled = jax.lax.while_loop(running, body, carry)
+  # The last step, unless the loop settled (its loss could not resolve it).
+  last = jax.lax.cond(settled, lambda: jnp.asarray(jnp.inf, best_loss.dtype), lambda: loss_at(u))
   better = last < best_loss
-  return jnp.where(better, u, best_u), jnp.where(better, last, best_loss), taken + 1
+  return (jnp.where(better, u, best_u), jnp.where(better, last, best_loss),
+          taken + 1 - settled.astype(jnp.int32))

@@ -45,8 +45,9 @@ from jaxpso._src import similarity
 from jaxpso._src import template as templates
 
 # Gauss–Newton stops once a step moves the corners by under this many pixels
-# of the level being refined.
-_TOLERANCE = 0.01
+# of the level being refined: full resolution, coarser levels (the finer
+# ones refine further).
+_TOLERANCE, _COARSE_TOLERANCE = 0.01, 0.05
 # Two registrations agree when no template corner is further apart than this
 # (full-resolution pixels).
 _AGREE_PX = 1.0
@@ -208,7 +209,8 @@ class Problem:
   def _scores(self, h, level, index, chunk: int, lead: tuple, ranges, bins):
     """Similarity statistics of set `index` sampled at `level` through (lead…, 3, 3) level homographies h.
 
-    `bins`: the set's `_template_bins`.  The set is scored `chunk` points at
+    `bins`: the set's `_template_bins`, or None to bin each chunk's template
+    values as it is scored (cheaper for one pass).  The set is scored `chunk` points at
     a time (in one piece when its capacity fits).
     """
     image = atlas.level(self.context.image, level)
@@ -312,7 +314,8 @@ class Problem:
       u, _, taken = refine.levenberg_marquardt(
           u, lambda v: self._linearise(v, base, level, bins),
           lambda v: self._level_loss(v, base, level, bins), self.knobs.refine_steps,
-          _TOLERANCE * jnp.exp2(level.astype(jnp.float32)))
+          jnp.where(level > 0, _COARSE_TOLERANCE, _TOLERANCE)
+          * jnp.exp2(level.astype(jnp.float32)))
       return u, level - 1, steps + taken
 
     u, _, steps = jax.lax.while_loop(lambda c: c[1] >= 0, body,
@@ -375,7 +378,6 @@ class Problem:
     ranges = self.ranges(base)
     mi = self.config.similarity == "mi"
 
-    bins = self._template_bins(templates.FULL)
     image = atlas.level(self.context.image, 0)
     count = self.template.sets[templates.FULL, 1]
 
@@ -387,7 +389,9 @@ class Problem:
       if not mi:
         return measures.add(self.measure, stats, template, patch, valid), own
       # The patch against itself too, both sides binned over the image's range.
-      weights = jax.lax.dynamic_slice_in_dim(bins, start, FULL_CHUNK, axis=-1)
+      # The template's bins per chunk: only the chunks in use (a small
+      # template fills a fraction of the set's capacity).
+      weights = measures.bin_weights(template, self.config.bins, ranges.template)
       own_bins = measures.bin_weights(patch, self.config.bins, ranges.image)
       stats = measures.add(self.measure, stats, template, patch, valid, ranges, weights, own_bins)
       own = measures.add(self.measure, own, patch, patch, valid, None, own_bins, own_bins)

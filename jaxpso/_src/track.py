@@ -105,7 +105,7 @@ def _predict(contexts: register.Context, knobs, config):
     zero = jnp.zeros((2, problem.dim), jnp.float32)
     h = problem.homography(zero, jnp.arange(2))
     stats = problem._scores(h, 0, templates.FULL, register.FULL_CHUNK, (2,), problem.ranges(1),
-                            problem._template_bins(templates.FULL))
+                            None)
     return problem._loss(stats, templates.FULL, zero, jnp.arange(2))
 
   contexts = register.with_range(contexts, jnp.ones(contexts.seed.shape[0], bool), config)
@@ -129,6 +129,8 @@ def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs:
   bases = jnp.stack([predicted, carry.estimate], axis=1)
   contexts = register.each(lambda *a: register.context(*a, config), image, constants.template,
                            bases, constants.geometry, seeds)
+  # A shared image stays shared (`vmap` returned it copied per region).
+  contexts = contexts._replace(image=image)
   contexts = jax.lax.cond(knobs.predict, lambda c: _predict(c, knobs, config), lambda c: c,
                           contexts)
   if config.method == "pso":
