@@ -109,7 +109,8 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
            jnp.zeros([], jnp.int32), zero + jnp.inf, jnp.asarray(False))
   taken, u, best_u, best_loss, *_, settled = jax.lax.while_loop(running, body, carry)
   # The last step, unless the loop settled (its loss could not resolve it).
-  last = jax.lax.cond(settled, lambda: jnp.asarray(jnp.inf, best_loss.dtype), lambda: loss_at(u))
+  # Computed either way: a `cond` on a per-element flag would, under `vmap`,
+  # copy everything its branches close over (the image) per element.
+  last = jnp.where(settled, jnp.inf, loss_at(u))
   better = last < best_loss
-  return (jnp.where(better, u, best_u), jnp.where(better, last, best_loss),
-          taken + 1 - settled.astype(jnp.int32))
+  return jnp.where(better, u, best_u), jnp.where(better, last, best_loss), taken + 1
