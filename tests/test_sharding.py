@@ -76,7 +76,7 @@ def _checks():
                                                      None), mesh)
   assert shards(constants.template.values) == {d: (1, templates.CAPACITY) for d in devices}
   eye = np.stack([np.eye(3, dtype=np.float32)] * 4)
-  carry = sharding.split(track_module._Carry(eye, eye, np.ones(4, np.int32)), mesh)
+  carry = sharding.split(track_module._Carry(eye, eye, np.ones(4, np.int32), np.ones(4, np.float32)), mesh)
   image = sharding.replicate(atlas.build(np.asarray(sequence.frames[1]), 1), mesh)
   knobs = sharding.replicate(jax.tree.map(jnp.asarray, config.knobs()), mesh)
   carry, out = track_module._frame_step(carry, image, constants, knobs, config=config.statics())

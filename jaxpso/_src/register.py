@@ -93,6 +93,8 @@ class Context(NamedTuple):
       second computed only where a stage starts from it, `with_range`).
     self_loss: () the template's loss against itself, `quality`'s scale.
     seed: (2,) uint32 swarm seed.
+    reference: () the quality a match reaches in these images (1 unless
+      `track` measured it): a start is accepted at `accept_quality` × it.
   """
   image: atlas.Atlas
   template: templates.Template
@@ -103,6 +105,7 @@ class Context(NamedTuple):
   image_ranges: jax.Array
   self_loss: jax.Array
   seed: jax.Array
+  reference: jax.Array
 
 
 class Candidate(NamedTuple):
@@ -538,11 +541,13 @@ class State(NamedTuple):
     best: `Candidate` the best so far.
     anchor: `Candidate` align: the start's refinement; track: the recovery's.
     recovered: (C,) bool: track's recovery ran.
+    searched: (C,) bool: a swarm ran.
   """
   stage: jax.Array
   best: Candidate
   anchor: Candidate
   recovered: jax.Array
+  searched: jax.Array
 
 
 def _shared(node) -> bool:
@@ -638,14 +643,16 @@ def _advance_align(state: State, found: Candidate, contexts: Context, knobs: Kno
       [stage == 0, stage == 1, stage == 2],
       [jnp.where(accepted, done, jnp.where(coarse_next, 1, 2)), jnp.where(accepted, done, 2),
        jnp.where(settled, done, 3)], done)
-  return State(following, best, select(starting, start, state.anchor), state.recovered)
+  return State(following, best, select(starting, start, state.anchor), state.recovered,
+               state.searched | (stage >= 2))
 
 
 def _advance_track(state: State, found: Candidate, contexts: Context, knobs: Knobs) -> State:
   """track's transitions: accepted start → done; else search; short of `lost_quality`: recovery."""
-  del contexts
   stage, done = state.stage, len(TRACK)
-  accepted = found.quality >= knobs.accept_quality
+  # Relative to the quality a match reaches in these frames (noise and blur
+  # lower it for the right alignment too), never above `accept_quality`.
+  accepted = found.quality >= knobs.accept_quality * jnp.minimum(contexts.reference, 1.0)
   searched = better(found, state.best)
   recovered = better(found, state.anchor)
   best = select(stage == 0, found, select(stage == 1, searched, select(
@@ -657,7 +664,7 @@ def _advance_track(state: State, found: Candidate, contexts: Context, knobs: Kno
        jnp.where(searched.quality >= knobs.lost_quality, done, 2),
        jnp.where(accepted, done, 3)], done)
   return State(following, best, select(stage == 2, found, state.anchor),
-               state.recovered | (stage == 2))
+               state.recovered | (stage == 2), state.searched | (stage == 1) | (stage == 3))
 
 
 PIPELINES = {"align": (ALIGN, _advance_align), "track": (TRACK, _advance_track)}
@@ -673,7 +680,7 @@ def _initial(count: int, config) -> State:
                    quality=jnp.full(count, -jnp.inf, jnp.float32),
                    confirmed=jnp.zeros(count, bool), base=zero, num_iterations=zero,
                    num_evaluations=zero)
-  return State(zero, none, none, jnp.zeros(count, bool))
+  return State(zero, none, none, jnp.zeros(count, bool), jnp.zeros(count, bool))
 
 
 def _loop(contexts: Context, state: State, knobs: Knobs, pipeline: str, config) -> State:
@@ -769,7 +776,7 @@ def context(image: atlas.Atlas, template: templates.Template, bases, geometry, s
   if config.motion == "homography":
     quads = homography.apply_to_points(bases, motion.corners(template.size))[0]
   made = Context(image, template, bases, geometry, quads, template_range,
-                 jnp.zeros((2, 2), jnp.float32), self_loss, seed)
+                 jnp.zeros((2, 2), jnp.float32), self_loss, seed, jnp.float32(1.0))
   if config.similarity != "mi":
     return made
   return made._replace(image_ranges=jnp.stack([image_range(made, 0, config)] * 2))

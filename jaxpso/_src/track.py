@@ -86,6 +86,7 @@ class _Carry(NamedTuple):
   estimate: jax.Array  # (R, 3, 3) homography or (R, 4, 4) pose: the last good estimate
   velocity: jax.Array  # same shape: estimate_t · estimate_{t-1}⁻¹
   frame: jax.Array  # (R,) int32 index of the next frame
+  reference: jax.Array  # (R,) float32 the quality of the last searched match (`register.Context`)
 
 
 def _inverse(m):
@@ -130,16 +131,16 @@ def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs:
   contexts = register.each(lambda *a: register.context(*a, config), image, constants.template,
                            bases, constants.geometry, seeds)
   # A shared image stays shared (`vmap` returned it copied per region).
-  contexts = contexts._replace(image=image)
+  contexts = contexts._replace(image=image, reference=carry.reference)
   contexts = jax.lax.cond(knobs.predict, lambda c: _predict(c, knobs, config), lambda c: c,
                           contexts)
   if config.method == "pso":
     state = register.run(contexts, knobs, "track", config)
-    found, recovered = state.best, state.recovered
+    found, recovered, searched = state.best, state.recovered, state.searched
   else:
     found = register.each(lambda c, p: register.baseline(c, p, knobs, config), contexts,
                           constants.pyramid)
-    recovered = jnp.zeros(found.loss.shape, bool)
+    recovered = searched = jnp.zeros(found.loss.shape, bool)
   quality = found.quality
   lost = ~(quality >= knobs.lost_quality) | ~jnp.all(jnp.isfinite(found.u), axis=-1)
   status = jnp.where(lost, TrackStatus.LOST,
@@ -163,7 +164,10 @@ def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs:
   outputs = dict(homography=h, score=align.score_sign(config) * found.loss, quality=quality,
                  status=status.astype(jnp.int32), estimate=estimate,
                  num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
-  return _Carry(estimate, velocity, carry.frame + 1), outputs
+  # A search's match sets the reference; an accepted start only raises it.
+  reference = jnp.where(lost, carry.reference,
+                        jnp.where(searched, quality, jnp.maximum(carry.reference, quality)))
+  return _Carry(estimate, velocity, carry.frame + 1, reference.astype(jnp.float32)), outputs
 
 
 def _last_homography(carry: _Carry, constants: _Constants, config):
@@ -396,7 +400,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
                                         pyramid), mesh)
   carry = sharding.split(_Carry(
       first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32), (count, size, size)),
-      np.ones(count, np.int32)), mesh)
+      np.ones(count, np.int32), np.ones(count, np.float32)), mesh)
   knobs = sharding.replicate(jax.tree.map(jnp.asarray, config.knobs()), mesh)
   capacity = atlas.capacity(sum(h * w for h, w in atlas.level_shapes(frame_shape, levels)))
 
