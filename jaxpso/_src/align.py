@@ -109,7 +109,10 @@ class TrackConfig:
       the swarm had to run in most trials, 15 ms vs 10 ms per alignment).
     accept_quality: the start refined by Gauss–Newton alone is the result,
       and the swarm is skipped, when its `quality` reaches this; None always
-      runs the swarm.  `align` refines a start that falls short once more
+      runs the swarm.  `track` also accepts a start within 0.02 of the quality
+      of the region's last searched match (if that was ≥ 0.8): noise and blur lower the right
+      alignment's quality too, and the swarm should not run on every frame
+      for it (benchmarks/video.py).  `align` refines a start that falls short once more
       from the coarsest level before it runs the swarm: at σ = 12 px
       (benchmarks/convergence.py) the swarm then ran in 38 % of the trials
       instead of 74 %, with success unchanged or higher at every σ.

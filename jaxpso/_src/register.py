@@ -54,6 +54,9 @@ _AGREE_PX = 1.0
 # Points scored per chunk by Gauss–Newton, the swarm (a coarse level has
 # 144–576) and the full-resolution check.
 _GN_CHUNK, _SWARM_CHUNK, FULL_CHUNK = 1280, 256, 2048
+# `track` also accepts a start within this margin of its last search's
+# quality, where that was at least _MIN_REFERENCE (`_advance_track`).
+_REFERENCE_MARGIN, _MIN_REFERENCE = 0.02, 0.8
 # The wide searches (retry, recovery) draw other swarm streams.
 _WIDE_SEED = 0x5BD1E995
 
@@ -650,9 +653,12 @@ def _advance_align(state: State, found: Candidate, contexts: Context, knobs: Kno
 def _advance_track(state: State, found: Candidate, contexts: Context, knobs: Knobs) -> State:
   """track's transitions: accepted start → done; else search; short of `lost_quality`: recovery."""
   stage, done = state.stage, len(TRACK)
-  # Relative to the quality a match reaches in these frames (noise and blur
-  # lower it for the right alignment too), never above `accept_quality`.
-  accepted = found.quality >= knobs.accept_quality * jnp.minimum(contexts.reference, 1.0)
+  # Also accepted: within _REFERENCE_MARGIN of the quality the region's last
+  # search reached (noise and blur lower the right alignment's quality too),
+  # unless that was under _MIN_REFERENCE (low texture: too uncertain).
+  reference = contexts.reference
+  accepted = ((found.quality >= knobs.accept_quality)
+              | ((reference >= _MIN_REFERENCE) & (found.quality >= reference - _REFERENCE_MARGIN)))
   searched = better(found, state.best)
   recovered = better(found, state.anchor)
   best = select(stage == 0, found, select(stage == 1, searched, select(
