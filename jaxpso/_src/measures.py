@@ -66,18 +66,19 @@ def add(measure: Measure, stats, a, b, mask, ranges: Ranges | None = None, a_bin
         b_bins=None):
   """`stats` plus the chunk's sums: template values a (c,), patches b (…, c), mask (…, c).
 
-  For "mi", `a_bins` (bins, c) and `b_bins` (…, bins, c) are a's and b's
-  `bin_weights` where already computed.
+  For "mi", `a_bins` (c, bins) and `b_bins` (…, bins, c) are a's and b's
+  `bin_weights` where already computed (a's transposed: the CPU's product of
+  (k, c) by (c, k') is the fast one).
   """
   m = mask.astype(b.dtype)
   if measure.name == "mi":
-    wa = bin_weights(a, measure.bins, ranges.template) if a_bins is None else a_bins
+    wa = bin_weights(a, measure.bins, ranges.template).T if a_bins is None else a_bins
     wb = bin_weights(b, measure.bins, ranges.image) if b_bins is None else b_bins
     wb = wb * m[..., None, :]
     # Materialised: fused into the product, the weights were recomputed for
     # every one of its outputs.
     wa, wb = jax.lax.optimization_barrier((wa, wb))
-    return stats + jnp.swapaxes(wb @ wa.T, -1, -2)
+    return stats + jnp.swapaxes(wb @ wa, -1, -2)
   if measure.name == "ncc":
     sums, shift_a, shift_b = stats
     da, db = a - shift_a, (b - shift_b[..., None]) * m

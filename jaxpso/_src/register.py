@@ -51,9 +51,11 @@ _TOLERANCE, _COARSE_TOLERANCE = 0.01, 0.05
 # Two registrations agree when no template corner is further apart than this
 # (full-resolution pixels).
 _AGREE_PX = 1.0
-# Points scored per chunk by Gauss–Newton, the swarm (a coarse level has
-# 144–576) and the full-resolution check.
-_GN_CHUNK, _SWARM_CHUNK, FULL_CHUNK = 1280, 256, 2048
+# Points scored per chunk by Gauss–Newton, the swarm and the full-resolution
+# check.  A set costs whole chunks (under vmap, the largest element's), so
+# the chunks are sized to the sets: a coarse level has 144–576 points, a
+# 48×48 template's level 1 has 576 (benchmarks/README.md, batch).
+_GN_CHUNK, _SWARM_CHUNK, FULL_CHUNK = 640, 160, 2048
 # `track` also accepts a start within this margin of its last search's
 # quality, where that was at least _MIN_REFERENCE (`_advance_track`).
 _REFERENCE_MARGIN, _MIN_REFERENCE = 0.02, 0.8
@@ -205,12 +207,12 @@ class Problem:
     return templates.FULL_POINTS if full else templates.LEVEL_POINTS
 
   def _template_bins(self, index):
-    """MI: (bins, n) `measures.bin_weights` of set `index`'s values (n its capacity), once per search; else None."""
+    """MI: (n, bins) `measures.bin_weights` of set `index`'s values (n its capacity), once per search; else None."""
     if self.config.similarity != "mi":
       return None
     values = jax.lax.dynamic_slice(self.template.values, (self.template.sets[index, 0],),
                                    (self._capacity(index),))
-    return measures.bin_weights(values, self.config.bins, self.context.template_range)
+    return measures.bin_weights(values, self.config.bins, self.context.template_range).T
 
   def _scores(self, h, level, index, chunk: int, lead: tuple, ranges, bins):
     """Similarity statistics of set `index` sampled at `level` through (lead…, 3, 3) level homographies h.
@@ -225,7 +227,7 @@ class Problem:
     def body(start, stats):
       points, template, inside = self._chunk(index, start, chunk)
       patch, valid = materialized(image.sample(h, points), self.knobs)
-      weights = None if bins is None else jax.lax.dynamic_slice_in_dim(bins, start, chunk, axis=-1)
+      weights = None if bins is None else jax.lax.dynamic_slice_in_dim(bins, start, chunk, axis=0)
       return measures.add(self.measure, stats, template, patch, valid & inside, ranges, weights)
 
     empty = self._empty(h, level, index, lead)
@@ -271,35 +273,32 @@ class Problem:
       value, gx, gy, x, y = materialized((value, gx / w, gy / w, x, y), self.knobs)
       px, py = points[:, 0], points[:, 1]
       across = -(gx * x + gy * y)
-      # B (9, c), row-major like every operand of the products: concatenating
-      # (c, k) columns cost as much as the products.
-      slopes = jnp.stack([g * p for g in (gx, gy, across) for p in (px, py, jnp.ones_like(px))])
+      # B as rows (9, c) on the left and as columns (c, 9) on the right: the
+      # CPU's products of (k, c) by (c, k') are several times faster than by
+      # (k', c) transposed, most of all batched (benchmarks/README.md, batch).
+      terms = [g * p for g in (gx, gy, across) for p in (px, py, jnp.ones_like(px))]
       m = valid.astype(value.dtype)
-      left = jnp.concatenate([slopes, (m * value)[None]])
+      left = jnp.stack(terms + [m * value])
       if name != "mi":
-        right = jnp.concatenate([slopes, values[None], jnp.ones_like(values)[None]])
+        right = jnp.stack(terms + [values, jnp.ones_like(values)], axis=-1)
         stats = measures.add(self.measure, stats, values, value, valid)
-        return products + left @ right.T, stats
-      # [B; m·I]·[B; X]ᵀ, and the histogram with T̃'s sums: [m; β(I)·m]·Xᵀ.
-      template = jax.lax.dynamic_slice_in_dim(bins, start, _GN_CHUNK, -1)  # X (bins, c)
+        return products + left @ right, stats
+      # One product [B; m·I; m; β(I)·m]·[B, X]: the rows past B's give the
+      # histogram with T̃'s sums (one call beats two smaller ones, batched).
+      template = jax.lax.dynamic_slice_in_dim(bins, start, _GN_CHUNK, 0)  # X (c, bins)
       patch = measures.bin_weights(value, self.config.bins, ranges.image) * m
-      slopes_part, bins_part = products
-      return (slopes_part + left @ jnp.concatenate([slopes, template]).T,
-              bins_part + jnp.concatenate([m[None], patch]) @ template.T), stats
+      left = jnp.concatenate([left, m[None], patch])
+      return products + left @ jnp.concatenate([jnp.stack(terms, axis=-1), template], -1), stats
 
     bins_count = self.config.bins
-    if name == "mi":
-      empty = (jnp.zeros((10, 9 + bins_count), jnp.float32),
-               jnp.zeros((1 + bins_count, bins_count), jnp.float32))
-    else:
-      empty = jnp.zeros((10, 11), jnp.float32)
-    products, stats = measures.over_chunks(count, _GN_CHUNK, sums,
-                                           (empty, self._empty(h, level, level, ())))
+    rows, columns = (11 + bins_count, 9 + bins_count) if name == "mi" else (10, 11)
+    products, stats = measures.over_chunks(
+        count, _GN_CHUNK, sums,
+        (jnp.zeros((rows, columns), jnp.float32), self._empty(h, level, level, ())))
     per_bin = None
     if name == "mi":
-      products, bins_part = products
-      stats = bins_part[1:].T  # the joint histogram, template bins along the rows
-      per_bin = jnp.stack([products[9, 9:], bins_part[0]])
+      stats = products[11:, 9:].T  # the joint histogram, template bins along the rows
+      per_bin = jnp.stack([products[9, 9:], products[10, 9:]])
     normal, slopes_image = products[:9, :9], products[9, :9]
     slopes_template = products[:9, 9:] @ refine.adapted_coefficients(name, stats, per_bin)
     by_motion = jax.jacfwd(to_level)(u).reshape(9, -1)
@@ -397,10 +396,10 @@ class Problem:
       # The patch against itself too, both sides binned over the image's range.
       # The template's bins per chunk: only the chunks in use (a small
       # template fills a fraction of the set's capacity).
-      weights = measures.bin_weights(template, self.config.bins, ranges.template)
+      weights = measures.bin_weights(template, self.config.bins, ranges.template).T
       own_bins = measures.bin_weights(patch, self.config.bins, ranges.image)
       stats = measures.add(self.measure, stats, template, patch, valid, ranges, weights, own_bins)
-      own = measures.add(self.measure, own, patch, patch, valid, None, own_bins, own_bins)
+      own = measures.add(self.measure, own, patch, patch, valid, None, own_bins.T, own_bins)
       return stats, own
 
     empty = self._empty(h, 0, templates.FULL, ())
