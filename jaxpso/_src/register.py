@@ -246,8 +246,8 @@ class Problem:
   def _linearise(self, u, base, level, bins):
     """(loss, JᵀJ, Jᵀr) of the adapted SSD at u over level `level`'s set, in one chunk pass.
 
-    J = B·M: B = ∂I(W(p))/∂h per point in closed form, M = ∂h/∂u (with
-    h[2, 2] = 1).  T̃ is linear in its coefficients (per-bin means for "mi",
+    J = B·M: B = ∂I(W(p))/∂h per point in closed form, M = ∂h/∂u, over
+    h's first 8 entries (h[2, 2] = 1 does not move).  T̃ is linear in its coefficients (per-bin means for "mi",
     gain and bias for "ncc"), so Bᵀr = BᵀI − (BᵀX)·coefficients with X the
     template's bin weights (or [T, 1]): one pass sums BᵀB, BᵀI, BᵀX and the
     similarity's statistics, in one matrix product per chunk, and T̃ comes
@@ -276,7 +276,7 @@ class Problem:
       # B as rows (9, c) on the left and as columns (c, 9) on the right: the
       # CPU's products of (k, c) by (c, k') are several times faster than by
       # (k', c) transposed, most of all batched (benchmarks/README.md, batch).
-      terms = [g * p for g in (gx, gy, across) for p in (px, py, jnp.ones_like(px))]
+      terms = [g * p for g in (gx, gy, across) for p in (px, py, jnp.ones_like(px))][:8]
       m = valid.astype(value.dtype)
       left = jnp.stack(terms + [m * value])
       if name != "mi":
@@ -291,17 +291,17 @@ class Problem:
       return products + left @ jnp.concatenate([jnp.stack(terms, axis=-1), template], -1), stats
 
     bins_count = self.config.bins
-    rows, columns = (11 + bins_count, 9 + bins_count) if name == "mi" else (10, 11)
+    rows, columns = (10 + bins_count, 8 + bins_count) if name == "mi" else (9, 10)
     products, stats = measures.over_chunks(
         count, _GN_CHUNK, sums,
         (jnp.zeros((rows, columns), jnp.float32), self._empty(h, level, level, ())))
     per_bin = None
     if name == "mi":
-      stats = products[11:, 9:].T  # the joint histogram, template bins along the rows
-      per_bin = jnp.stack([products[9, 9:], products[10, 9:]])
-    normal, slopes_image = products[:9, :9], products[9, :9]
-    slopes_template = products[:9, 9:] @ refine.adapted_coefficients(name, stats, per_bin)
-    by_motion = jax.jacfwd(to_level)(u).reshape(9, -1)
+      stats = products[10:, 8:].T  # the joint histogram, template bins along the rows
+      per_bin = jnp.stack([products[8, 8:], products[9, 8:]])
+    normal, slopes_image = products[:8, :8], products[8, :8]
+    slopes_template = products[:8, 8:] @ refine.adapted_coefficients(name, stats, per_bin)
+    by_motion = jax.jacfwd(to_level)(u).reshape(9, -1)[:8]  # h[2, 2] = 1 stays put
     loss = self._loss(stats, level, u, base)
     return (loss, by_motion.T @ normal @ by_motion,
             by_motion.T @ (slopes_image - slopes_template))
