@@ -54,8 +54,9 @@ _AGREE_PX = 1.0
 # Points scored per chunk by Gauss–Newton, the swarm and the full-resolution
 # check.  A set costs whole chunks (under vmap, the largest element's), so
 # the chunks are sized to the sets: a coarse level has 144–576 points, a
-# 48×48 template's level 1 has 576 (benchmarks/README.md, batch).
-_GN_CHUNK, _SWARM_CHUNK, FULL_CHUNK = 640, 160, 2048
+# 48×48 template's level 1 has 576, and the full set (at most
+# `template.FULL_POINTS`) is one chunk (benchmarks/README.md, batch).
+_GN_CHUNK, _SWARM_CHUNK, FULL_CHUNK = 640, 160, 2560
 # `track` also accepts a start within this margin of its last search's
 # quality, where that was at least _MIN_REFERENCE (`_advance_track`).
 _REFERENCE_MARGIN, _MIN_REFERENCE = 0.02, 0.8
@@ -378,7 +379,7 @@ class Problem:
 
   # ------------------------------------------------------------- the check
   def finish(self, u, base, iterations, evaluations) -> Candidate:
-    """The candidate at u: its loss over every full-resolution pixel and its `quality`."""
+    """The candidate at u: its loss over the `FULL` set (full resolution) and its `quality`."""
     h = self.homography(u, base)
     ranges = self.ranges(base)
     mi = self.config.similarity == "mi"
@@ -404,7 +405,8 @@ class Problem:
 
     empty = self._empty(h, 0, templates.FULL, ())
     stats, own = measures.over_chunks(count, FULL_CHUNK, body,
-                                      (empty, measures.empty(self.measure, ()) if mi else None))
+                                      (empty, measures.empty(self.measure, ()) if mi else None),
+                                      templates.FULL_POINTS)
     loss = self._loss(stats, templates.FULL, u, base)
     own_loss = None
     if mi:

@@ -100,7 +100,7 @@ def _frame_seed(seed, frame):
 
 def _predict(contexts: register.Context, knobs, config):
   """Contexts whose start (base 0, the prediction) falls back to the previous estimate (base 1)
-  where that scores better over every full-resolution pixel."""
+  where that scores better over the full-resolution set (`template.FULL`)."""
   def losses(context):
     problem = register.Problem(context, knobs, config)
     zero = jnp.zeros((2, problem.dim), jnp.float32)
