@@ -29,6 +29,8 @@ import time
 
 import numpy as np
 
+import common
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 SIGMAS = (2.0, 8.0)
@@ -96,10 +98,8 @@ def _track_rows():
 
 
 def _batch_rows():
-  import jaxpso
-
-  sys.path.insert(0, HERE)
   import batch  # the 48×48 regions of benchmarks/batch.py
+  import jaxpso
 
   sequence = jaxpso.synthetic.make_sequence(0, num_frames=20, frame_shape=(240, 320),
                                             roi_size=(100, 100))
@@ -133,9 +133,6 @@ def main():
   if args.probe:
     print(json.dumps(PARTS[args.probe]()))
     return
-  sys.path.insert(0, HERE)
-  import common
-
   trees = {"now": ROOT}
   if args.reference:
     trees = {"reference": os.path.abspath(args.reference), "now": ROOT}

@@ -56,7 +56,7 @@ _AGREE_PX = 1.0
 # the chunks are sized to the sets: a coarse level has 144–576 points, a
 # 48×48 template's level 1 has 576, and the full set (at most
 # `template.FULL_POINTS`) is one chunk (benchmarks/README.md, batch).
-_GN_CHUNK, _SWARM_CHUNK, FULL_CHUNK = 640, 160, 2560
+_GN_CHUNK, _SWARM_CHUNK, FULL_CHUNK = 640, 160, templates.FULL_POINTS
 # `track` also accepts a start within this margin of its last search's
 # quality, where that was at least _MIN_REFERENCE (`_advance_track`).
 _REFERENCE_MARGIN, _MIN_REFERENCE = 0.02, 0.8
@@ -248,7 +248,8 @@ class Problem:
     """(loss, JᵀJ, Jᵀr) of the adapted SSD at u over level `level`'s set, in one chunk pass.
 
     J = B·M: B = ∂I(W(p))/∂h per point in closed form, M = ∂h/∂u, over
-    h's first 8 entries (h[2, 2] = 1 does not move).  T̃ is linear in its coefficients (per-bin means for "mi",
+    h's first 8 entries (h[2, 2] = 1 does not move).  T̃ is linear in its
+    coefficients (per-bin means for "mi",
     gain and bias for "ncc"), so Bᵀr = BᵀI − (BᵀX)·coefficients with X the
     template's bin weights (or [T, 1]): one pass sums BᵀB, BᵀI, BᵀX and the
     similarity's statistics, in one matrix product per chunk, and T̃ comes
@@ -274,10 +275,10 @@ class Problem:
       value, gx, gy, x, y = materialized((value, gx / w, gy / w, x, y), self.knobs)
       px, py = points[:, 0], points[:, 1]
       across = -(gx * x + gy * y)
-      # B as rows (9, c) on the left and as columns (c, 9) on the right: the
+      # B as rows (8, c) on the left and as columns (c, 8) on the right: the
       # CPU's products of (k, c) by (c, k') are several times faster than by
       # (k', c) transposed, most of all batched (benchmarks/README.md, batch).
-      terms = [g * p for g in (gx, gy, across) for p in (px, py, jnp.ones_like(px))][:8]
+      terms = [gx * px, gx * py, gx, gy * px, gy * py, gy, across * px, across * py]
       m = valid.astype(value.dtype)
       left = jnp.stack(terms + [m * value])
       if name != "mi":
