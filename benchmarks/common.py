@@ -89,3 +89,16 @@ def write(name: str, payload: dict, markdown: str) -> None:
   with open(os.path.join(RESULTS, name + ".md"), "w") as f:
     f.write(markdown)
   print(markdown)
+
+
+def status_precision(status: np.ndarray, errors: np.ndarray, good_px: float = 5.0) -> dict:
+  """Counts for the status's precision: frames not LOST but more than `good_px` off, and good ones LOST.
+
+  status, errors: (…) per frame (`jaxpso.TrackStatus`, corner RMS px).
+  """
+  import jaxpso
+
+  reported = status != jaxpso.TrackStatus.LOST
+  good = errors <= good_px
+  return {"tracked_but_off": int(np.sum(reported & ~good)), "tracked": int(np.sum(reported)),
+          "good_but_lost": int(np.sum(~reported & good)), "good": int(np.sum(good))}

@@ -160,11 +160,7 @@ def _row(clip, stride, tracker, errors, seconds, status=None) -> dict:
          "p_at_5": float(np.mean(good)), "mean_error_px": float(np.mean(errors)),
          "median_error_px": float(np.median(errors)), "ms_per_frame": 1e3 * seconds}
   if status is not None:
-    reported = status != jaxpso.TrackStatus.LOST
-    row["tracked_but_off"] = int(np.sum(reported & ~good))
-    row["tracked"] = int(np.sum(reported))
-    row["good_but_lost"] = int(np.sum(~reported & good))
-    row["good"] = int(np.sum(good))
+    row.update(common.status_precision(status, errors, GOOD_PX))
   return row
 
 

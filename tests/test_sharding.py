@@ -64,9 +64,9 @@ def _checks():
   one = jaxpso.track(sequence.frames, rois, config=config, devices=devices[:1])
   for chosen in (None, devices[:2]):
     many = jaxpso.track(sequence.frames, rois, config=config, devices=chosen)
-    # Measured: bit-identical with two regions per device; with one, XLA
-    # compiles the size-1 batch differently and Gauss–Newton stops 0.03 px apart.
-    np.testing.assert_allclose(many.corners, one.corners, atol=0.05)
+    # Not bit-identical (XLA partitions the products per device, so sums are
+    # taken in another order), but within 1e-3 px of one device's.
+    np.testing.assert_allclose(many.corners, one.corners, rtol=0, atol=1e-3)
     np.testing.assert_array_equal(many.status, one.status)
   # The frame step keeps the regions split: each device's carry holds its region.
   mesh = sharding.batch_mesh(None, 4)

@@ -117,11 +117,12 @@ class TrackConfig:
       (benchmarks/convergence.py) the swarm then ran in 38 % of the trials
       instead of 74 %, with success unchanged or higher at every σ.
     min_valid: fraction of template pixels that must land in the image.
-    predict: `track` starts each frame from a constant-velocity prediction
-      (or the previous estimate, whichever scores better).  Off by default:
-      on the synthetic 200-frame sequences it changed nothing for motion
-      "homography" and, for "plane", let the pose drift along the
-      translation/rotation ambiguity (benchmarks/tracking.py).
+    predict: `track` starts each frame from a prediction carrying half the
+      last inter-frame motion (or from the previous estimate, whichever
+      scores better).  Half, not all: with all of it a plane pose's weakly
+      constrained rotation/translation error grows by itself
+      (benchmarks/tracking.py).  Off by default: it changes nothing on
+      the synthetic sequences.
     lost_quality: `track` declares a frame lost when its `quality` stays
       below this after the recovery search (`lost_threshold`).  None (the
       default): `LOST_QUALITY` of the similarity, above the wrong matches

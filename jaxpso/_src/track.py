@@ -4,7 +4,7 @@ Frame 0's region is the template; a batch of R regions (or of R sequences)
 is tracked together, every step `vmap`ped over the regions.  Every later
 frame is one call of one compiled program (`_frame_step`) on the frame's
 pyramid (built on the host, `jaxpso._src.atlas`): a start chosen between the
-constant-velocity prediction and the previous estimate, then the stages of
+damped constant-velocity prediction and the previous estimate, then the stages of
 `jaxpso._src.register` (Gauss–Newton from the start; when that falls short
 of `TrackConfig.accept_quality`, the swarm and Gauss–Newton from its best;
 when the quality stays under `TrackConfig.lost_threshold`, a recovery
@@ -81,6 +81,14 @@ class _Constants(NamedTuple):
   pyramid: list | None  # the baselines' dense template levels, (R, h_l, w_l) each
 
 
+# The prediction carries this fraction of the last inter-frame motion.  With
+# all of it, an error the image barely constrains (a plane pose's rotation
+# against its translation) grows by itself, e_{t+1} = 2 e_t − e_{t−1}: with a
+# fraction α it follows the roots 1 and α of z² − (1 + α) z + α, so it stays
+# bounded (benchmarks/README.md, tracking: plane + prediction).
+_PREDICTED_FRACTION = 0.5
+
+
 class _Carry(NamedTuple):
   """The tracker's state between frames (a pytree; leading region axis R)."""
   estimate: jax.Array  # (R, 3, 3) homography or (R, 4, 4) pose: the last good estimate
@@ -92,6 +100,18 @@ class _Carry(NamedTuple):
 def _inverse(m):
   """Inverse of a homography or a rigid pose."""
   return plane.invert_pose(m) if m.shape == (4, 4) else homography.inverse(m)
+
+
+def _damped(velocity):
+  """(R, 3, 3) or (R, 4, 4) inter-frame motions → `_PREDICTED_FRACTION` of each, the predicted step.
+
+  A pose is scaled in its parameters (translation, rotation vector); a
+  homography as I + α (V − I), V with V[2, 2] = 1 (its α-th power to first order).
+  """
+  if velocity.shape[-1] == 4:
+    return plane.pose_from_params(_PREDICTED_FRACTION * jax.vmap(plane.params_from_pose)(velocity))
+  eye = jnp.eye(3, dtype=velocity.dtype)
+  return eye + _PREDICTED_FRACTION * (velocity / velocity[:, 2:, 2:] - eye)
 
 
 def _frame_seed(seed, frame):
@@ -126,7 +146,7 @@ def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs:
   """One frame of R regions: (carry, the frame's atlas, shared (1-D pixels) or one per region) →
   (carry, per-frame outputs, each with the leading R)."""
   seeds = jax.vmap(_frame_seed)(constants.seed, carry.frame)
-  predicted = jnp.where(knobs.predict, carry.velocity @ carry.estimate, carry.estimate)
+  predicted = jnp.where(knobs.predict, _damped(carry.velocity) @ carry.estimate, carry.estimate)
   bases = jnp.stack([predicted, carry.estimate], axis=1)
   contexts = register.each(lambda *a: register.context(*a, config), image, constants.template,
                            bases, constants.geometry, seeds)
