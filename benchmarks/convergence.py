@@ -8,7 +8,9 @@ ValueError of `jaxpso.align`, counted as a failure of every jaxpso method
 (`rejected_starts`) and left out of its times; OpenCV's ECC still runs it.  The
 photometric condition changes the image only (the template always comes from
 the unchanged image): none, gain/bias (v ↦ 0.7 v + 0.2), gamma 0.5 (v ↦ √v),
-inverted (v ↦ 1 − v) and noise (Gaussian, σ 0.03, clipped to [0, 1]).  Every
+inverted (v ↦ 1 − v), noise (Gaussian, σ 0.03, clipped to [0, 1]) and
+shading (v ↦ g v, clipped, g a linear ramp from 0.5 at the top-left corner
+to 1.3 at the bottom-right).  Every
 method aligns the same trials: the same templates and starts for a σ (drawn
 from the seed 7σ whatever the condition), and under "noise" the same noisy
 image.
@@ -74,7 +76,14 @@ CONDITIONS = {  # name → (label, image ↦ changed image, given the trial's ge
     "gamma": ("gamma 0.5", lambda v, rng: np.sqrt(v)),
     "inverted": ("inverted", lambda v, rng: 1.0 - v),
     "noise": ("noise σ 0.03", lambda v, rng: np.clip(v + rng.normal(0, 0.03, v.shape), 0, 1)),
+    "shading": ("shading ramp", lambda v, rng: np.clip(v * _ramp(v.shape), 0, 1)),
 }
+
+
+def _ramp(shape) -> np.ndarray:
+  """A smooth illumination: gain 0.5 at the image's top-left corner to 1.3 at its bottom-right."""
+  rows, columns = np.mgrid[:shape[0], :shape[1]]
+  return 0.5 + 0.4 * (rows / (shape[0] - 1) + columns / (shape[1] - 1))
 METHODS = {  # name → (label, TrackConfig fields, or None for OpenCV's ECC)
     "pso-mi": ("pso (MI)", {}),
     "pso-ncc": ("pso (NCC)", {"similarity": "ncc"}),
@@ -350,7 +359,8 @@ def main():
       "100×100 templates at random places of the embedded camera and brick images, the 4"
       " corners of the start perturbed by Gaussian noise of σ px; success = corner RMS error"
       " <= 1 px.  The condition changes the image only (gain/bias v ↦ 0.7 v + 0.2, gamma"
-      " v ↦ √v, inverted v ↦ 1 − v, noise + N(0, 0.03²) clipped to [0, 1]).  Every method"
+      " v ↦ √v, inverted v ↦ 1 − v, noise + N(0, 0.03²) clipped to [0, 1], shading v ↦ g v"
+      " clipped, g from 0.5 at the top-left corner to 1.3 at the bottom-right).  Every method"
       " aligns the same trials (templates, starts, noisy images).  jaxpso methods:"
       " `TrackConfig` defaults with the method and similarity named (pso (MI) is"
       f" `TrackConfig()`: {jaxpso.TrackConfig()}); ecc (NCC) with max_iterations=100."
