@@ -70,6 +70,14 @@ from jaxpso._src.data import load_image
 
 SIZE = 100
 SOURCE = np.float32([[0, 0], [SIZE - 1, 0], [SIZE - 1, SIZE - 1], [0, SIZE - 1]])
+
+
+def _ramp(shape) -> np.ndarray:
+  """A smooth illumination: gain 0.5 at the image's top-left corner to 1.3 at its bottom-right."""
+  rows, columns = np.mgrid[:shape[0], :shape[1]]
+  return 0.5 + 0.4 * (rows / (shape[0] - 1) + columns / (shape[1] - 1))
+
+
 CONDITIONS = {  # name → (label, image ↦ changed image, given the trial's generator)
     "none": ("none", lambda v, rng: v),
     "gain": ("gain/bias 0.7 v + 0.2", lambda v, rng: 0.7 * v + 0.2),
@@ -78,12 +86,6 @@ CONDITIONS = {  # name → (label, image ↦ changed image, given the trial's ge
     "noise": ("noise σ 0.03", lambda v, rng: np.clip(v + rng.normal(0, 0.03, v.shape), 0, 1)),
     "shading": ("shading ramp", lambda v, rng: np.clip(v * _ramp(v.shape), 0, 1)),
 }
-
-
-def _ramp(shape) -> np.ndarray:
-  """A smooth illumination: gain 0.5 at the image's top-left corner to 1.3 at its bottom-right."""
-  rows, columns = np.mgrid[:shape[0], :shape[1]]
-  return 0.5 + 0.4 * (rows / (shape[0] - 1) + columns / (shape[1] - 1))
 METHODS = {  # name → (label, TrackConfig fields, or None for OpenCV's ECC)
     "pso-mi": ("pso (MI)", {}),
     "pso-ncc": ("pso (NCC)", {"similarity": "ncc"}),
