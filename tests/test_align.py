@@ -205,13 +205,14 @@ for i, kind in enumerate([0] * 14 + [1] * 14 + [2] * 14 + [3] * 14 + [0] * 4):
       max_iterations=5 + i % 7, patience=None if i % 3 else 3, search_radius=4.0 + i % 5,
       accept_quality=None if i % 4 else 0.99, retry_quality=0.5 + i / 200, refine_steps=4 + i % 3,
       levels=1 + i % 2))
-errors = []
+errors, peaks_mib = [], []
 for i, config in enumerate(configs):
   result = jaxpso.align(image, template, start, config=config, key=i)
   errors.append(np.abs(np.asarray(result.homography)[:2, 2] - [56, 48]).max())
+  peaks_mib.append(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024)
 counts = programs.counts()
 print(len({c.statics() for c in configs}), counts["compiled"], counts["loaded"], counts["reused"],
-      max(errors), resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024, flush=True)
+      max(errors), peaks_mib[0], peaks_mib[-1], flush=True)
 """
 
 
@@ -223,11 +224,14 @@ def test_a_sweep_of_60_configs_compiles_one_program_per_static_setting(tmp_path)
   done = subprocess.run([sys.executable, "-c", _SWEEP], env=env, capture_output=True, text=True,
                         timeout=900)
   assert done.returncode == 0, done.stderr[-3000:]
-  statics, compiled, loaded, reused, error, rss_mib = done.stdout.split()
+  statics, compiled, loaded, reused, error, first_mib, peak_mib = done.stdout.split()
   assert int(statics) == 4 and int(compiled) == 4, done.stdout
   assert int(loaded) >= 1 and int(compiled) + int(loaded) + int(reused) == 60, done.stdout
   assert float(error) < 1.0, done.stdout  # 2 px off at the start
-  assert int(rss_mib) < 2048, done.stdout
+  # Bounded: the 59 calls after the first add little to its peak (747 -> 815
+  # MiB on a 2-core dev machine).  The absolute peak depends on the machine
+  # (CI's reached 2064 MiB), hence the growth bound and a loose ceiling.
+  assert int(peak_mib) - int(first_mib) < 512 and int(peak_mib) < 4096, done.stdout
 
 
 def test_templates_and_images_of_many_sizes_share_one_program():
