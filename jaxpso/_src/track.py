@@ -307,12 +307,17 @@ def _template(frame: np.ndarray, corners: np.ndarray, shape) -> np.ndarray:
   return cv2.warpPerspective(frame, h, (cols, rows), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP)
 
 
-def _start(corners: np.ndarray, shape) -> np.ndarray:
-  """(3, 3) float32 homography from a template of `shape` onto its corners in frame 0, h[2, 2] = 1."""
-  rows, cols = shape
-  rect = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]], np.float32)
-  h = np.asarray(homography.homography_from_corners(rect, corners.astype(np.float32)), np.float64)
-  return (h / h[2, 2]).astype(np.float32)
+def _starts(regions: list) -> np.ndarray:
+  """(R, 3, 3) float32 homographies from each template onto its corners in frame 0, h[2, 2] = 1.
+
+  `regions`: R (corners (4, 2), (rows, cols)) pairs.  One batched call: per
+  region, the eager operations cost 3.6 ms (0.23 s for 64 regions).
+  """
+  rects = np.array([[[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]]
+                    for _, (rows, cols) in regions], np.float32)
+  corners = np.stack([c for c, _ in regions]).astype(np.float32)
+  h = np.asarray(homography.homography_from_corners(rects, corners), np.float64)
+  return (h / h[:, 2:, 2:]).astype(np.float32)
 
 
 def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0, camera=None,
@@ -397,7 +402,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   templates_ = [_template(f, corners, shape) for f, (corners, shape) in zip(pixels, regions)]
   align.check_texture(np.array([np.std(t) for t in templates_]),
                       lambda r: f"{name(r)} {rois[r]!r}")
-  starts = np.stack([_start(corners, shape) for corners, shape in regions])
+  starts = _starts(regions)
   geometry = None
   if config.motion == "plane":
     geometry = align.plane_geometries(camera, plane_normal, frame_shape, starts, shapes,
