@@ -17,7 +17,7 @@ or a folder of images.  Both write to DIR:
                iterations, evaluations
   results.json the same, with a summary
 Tracker options: --similarity, --motion, --dof, --swarm-size, --max-iterations,
---search-radius, --levels, --refine-steps (defaults: `jaxpso.TrackConfig`).
+--search-radius, --levels, --resolution, --refine-steps (defaults: `jaxpso.TrackConfig`).
 """
 
 from __future__ import annotations
@@ -71,6 +71,8 @@ def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
   group.add_argument("--levels", type=int,
                      help="pyramid levels (default: by the template's size, at most"
                      f" {align.AUTO_LEVELS})")
+  group.add_argument("--resolution", type=int,
+                     help="points per template set at most (default 2560, about 50x50)")
   group.add_argument("--refine-steps", type=int, dest="refine_steps",
                      help=f"Gauss–Newton steps per level (default {_default('refine_steps')})")
   group.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
@@ -78,7 +80,7 @@ def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
 
 def _config(args) -> jaxpso.TrackConfig:
   names = ("similarity", "motion", "dof", "swarm_size", "max_iterations", "search_radius",
-           "levels", "refine_steps")
+           "levels", "resolution", "refine_steps")
   return jaxpso.TrackConfig(**{name: getattr(args, name) for name in names
                                if getattr(args, name) is not None})
 

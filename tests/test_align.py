@@ -254,3 +254,18 @@ def test_templates_and_images_of_many_sizes_share_one_program():
       mapped = cv2.perspectiveTransform(source[None], np.float64(result.homography))[0]
       assert np.sqrt(np.mean(np.sum((mapped - truth) ** 2, -1))) < 1.0, (shape, size)
   assert programs_made() - before == 1
+
+
+def test_resolution_caps_every_point_set_and_the_alignment_stays_subpixel():
+  # A 64×64 template (4096 pixels) on a budget of 300 points per set: every
+  # set holds at most 300, the arrays shrink, and the alignment still lands.
+  from jaxpso._src import template as templates
+  prepared = templates.prepare(TEMPLATE, 2, 1.0, 16, resolution=300)
+  assert 0 < prepared.sets[:, 1].max() <= 300
+  assert prepared.points.shape[0] == templates.capacity(300) < templates.capacity()
+  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "resolution": 300})
+  before = programs_made()
+  errors = [_corner_error(jaxpso.align(IMAGE, TEMPLATE, _perturbed(seed, 3.0), config=config,
+                                       key=seed).homography) for seed in range(3)]
+  assert programs_made() == before + 1  # resolution is static: its own program, once
+  assert max(errors) < 0.5, errors

@@ -74,7 +74,7 @@ def _checks():
   prepared = align._stack([templates.prepare(template, 1, 0.25, 16)] * 4)
   constants = sharding.split(track_module._Constants(prepared, None, np.zeros((4, 2), np.uint32),
                                                      None), mesh)
-  assert shards(constants.template.values) == {d: (1, templates.CAPACITY) for d in devices}
+  assert shards(constants.template.values) == {d: (1, templates.capacity()) for d in devices}
   eye = np.stack([np.eye(3, dtype=np.float32)] * 4)
   carry = sharding.split(track_module._Carry(eye, eye, np.ones(4, np.int32), np.ones(4, np.float32)), mesh)
   image = sharding.replicate(atlas.build(np.asarray(sequence.frames[1]), 1), mesh)

@@ -102,7 +102,7 @@ class TrackConfig:
       after the swarm (0 disables the refinement).
     pixels: fraction of the full-resolution template's pixels the
       refinement uses there, those with the largest gradient magnitude (at
-      least 256 or all of them, at most `template.LEVEL_POINTS`); 1 uses
+      least 256 or all of them, at most `resolution`); 1 uses
       every pixel.  The coarser levels and
       the swarm always use every pixel (selecting at levels 1–3 as well
       made the refinement from the start converge less often: at σ = 8 px
@@ -116,6 +116,14 @@ class TrackConfig:
       from the coarsest level before it runs the swarm: at σ = 12 px
       (benchmarks/convergence.py) the swarm then ran in 38 % of the trials
       instead of 74 %, with success unchanged or higher at every σ.
+    resolution: points each of the template's sets holds at most (a pixel
+      budget; static).  A template level with more keeps those of largest
+      gradient, and the full-resolution loss and `quality` a regular
+      subsample (every s-th row and column), so a region of any size costs
+      at most this many points per set.  None (the default):
+      `template.RESOLUTION` (2 560, about 50×50; the trade-off is measured
+      in benchmarks/README.md, resolution).  At least 64 (8×8) and at most
+      the template's pixels.
     min_valid: fraction of template pixels that must land in the image.
     predict: `track` starts each frame from a prediction carrying half the
       last inter-frame motion (or from the previous estimate, whichever
@@ -167,6 +175,7 @@ class TrackConfig:
   refine_steps: int = 10
   pixels: float = 0.25
   accept_quality: float | None = 0.95
+  resolution: int | None = None
   min_valid: float = 0.5
   predict: bool = False
   lost_quality: float | None = None
@@ -196,6 +205,8 @@ class TrackConfig:
           f"TrackConfig.search_radius must be finite and > 0, got {self.search_radius!r}")
     if not 0.0 < checks.check_real(self.pixels, "TrackConfig.pixels") <= 1.0:
       raise ValueError(f"TrackConfig.pixels must be in (0, 1], got {self.pixels!r}")
+    if self.resolution is not None:
+      checks.check_int(self.resolution, "TrackConfig.resolution", templates.MIN_RESOLUTION)
     if not 0.0 < checks.check_real(self.min_valid, "TrackConfig.min_valid") <= 1.0:
       raise ValueError(f"TrackConfig.min_valid must be in (0, 1], got {self.min_valid!r}")
     for name in ("lost_quality", "retry_quality", "accept_quality"):
@@ -256,6 +267,7 @@ _RUNTIME = ("search_radius", "max_iterations", "patience", "refine_steps", "acce
 @functools.lru_cache(maxsize=256)
 def _statics(config: TrackConfig) -> TrackConfig:
   defaults = TrackConfig()
+  config = dataclasses.replace(config, resolution=config.resolution or templates.RESOLUTION)
   if config.method != "pso":  # a baseline's loops are unrolled per level
     return dataclasses.replace(config, **{k: getattr(defaults, k) for k in _RUNTIME
                                           if k not in ("levels", "max_iterations", "min_valid")})
@@ -385,11 +397,15 @@ def check_texture(spreads, describe: Callable[[int], str]) -> None:
 
 
 def check_template_size(shape, config: TrackConfig, name: str) -> None:
-  """ValueError naming `name` when a side is outside `TEMPLATE_SIDES` or the coarsest level is under 4 px."""
+  """ValueError naming `name` when a side is outside `TEMPLATE_SIDES`, the coarsest level is
+  under 4 px or `TrackConfig.resolution` exceeds its pixels."""
   low, high = TEMPLATE_SIDES
   if not low <= min(shape) or not max(shape) <= high:
     raise ValueError(f"{name} of shape {tuple(shape)} is outside the supported sizes: every side"
                      f" must be {low} to {high} pixels")
+  if config.resolution is not None and config.resolution > shape[0] * shape[1]:
+    raise ValueError(f"TrackConfig.resolution={config.resolution} is larger than {name} of shape"
+                     f" {tuple(shape)} ({shape[0] * shape[1]} pixels)")
   if min(shape) / 2 ** (config.levels - 1) < 4:
     raise ValueError(
         f"{name} of shape {tuple(shape)} is too small for levels={config.levels}:"
@@ -569,7 +585,8 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
     bases = np.broadcast_to(np.eye(4, dtype=np.float32), (len(starts), 2, 4, 4))
   else:
     bases = np.repeat((to_window @ np.stack(starts))[:, None], 2, axis=1).astype(np.float32)
-  prepared = _stack([templates.prepared(t, c.levels, c.pixels, c.bins)
+  resolution = config.statics().resolution
+  prepared = _stack([templates.prepared(t, c.levels, c.pixels, c.bins, resolution)
                      for t, c in zip(templates_, configs)])
   arguments = (_stack(pyramids), prepared, bases, geometry, element_seeds(key, len(starts)),
                offsets)

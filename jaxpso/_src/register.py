@@ -51,12 +51,12 @@ _TOLERANCE, _COARSE_TOLERANCE = 0.01, 0.05
 # Two registrations agree when no template corner is further apart than this
 # (full-resolution pixels).
 _AGREE_PX = 1.0
-# Points scored per chunk by Gauss–Newton, the swarm and the full-resolution
-# check.  A set costs whole chunks (under vmap, the largest element's), so
-# the chunks are sized to the sets: a coarse level has 144–576 points, a
-# 48×48 template's level 1 has 576, and the full set (at most
-# `template.FULL_POINTS`) is one chunk (benchmarks/README.md, batch).
-_GN_CHUNK, _SWARM_CHUNK, FULL_CHUNK = 640, 160, templates.FULL_POINTS
+# Points scored per chunk by Gauss–Newton and the swarm (the full-resolution
+# check scores its set, at most `TrackConfig.resolution` points, in one).
+# A set costs whole chunks (under vmap, the largest element's), so the
+# chunks are sized to the sets: a coarse level has 144–576 points, a 48×48
+# template's level 1 has 576 (benchmarks/README.md, batch).
+_GN_CHUNK, _SWARM_CHUNK = 640, 160
 # `track` also accepts a start within this margin of its last search's
 # quality, where that was at least _MIN_REFERENCE (`_advance_track`).
 _REFERENCE_MARGIN, _MIN_REFERENCE = 0.02, 0.8
@@ -147,12 +147,12 @@ def normalized(h) -> jax.Array:
   return (h / h[2, 2]).at[2, 2].set(1.0)
 
 
-def _full_set(template: templates.Template):
-  """(FULL_POINTS, 2) points, (FULL_POINTS,) values and mask of the `FULL` set, at once."""
+def _full_set(template: templates.Template, resolution: int):
+  """(resolution, 2) points, (resolution,) values and mask of the `FULL` set, at once."""
   offset, count = template.sets[templates.FULL]
-  points = jax.lax.dynamic_slice(template.points, (offset, 0), (templates.FULL_POINTS, 2))
-  values = jax.lax.dynamic_slice(template.values, (offset,), (templates.FULL_POINTS,))
-  return points, values, jnp.arange(templates.FULL_POINTS) < count
+  points = jax.lax.dynamic_slice(template.points, (offset, 0), (resolution, 2))
+  values = jax.lax.dynamic_slice(template.values, (offset,), (resolution,))
+  return points, values, jnp.arange(resolution) < count
 
 
 class Problem:
@@ -202,17 +202,12 @@ class Problem:
     value = measures.loss(self.measure, stats, count, self.knobs.min_valid)
     return jnp.where(self.admissible(u, base), value, jnp.inf)
 
-  def _capacity(self, index) -> int:
-    """The most points set `index` holds (static)."""
-    full = isinstance(index, int) and index == templates.FULL
-    return templates.FULL_POINTS if full else templates.LEVEL_POINTS
-
   def _template_bins(self, index):
-    """MI: (n, bins) `measures.bin_weights` of set `index`'s values (n its capacity), once per search; else None."""
+    """MI: (n, bins) `measures.bin_weights` of set `index`'s values (n its `template.slot`), once per search; else None."""
     if self.config.similarity != "mi":
       return None
     values = jax.lax.dynamic_slice(self.template.values, (self.template.sets[index, 0],),
-                                   (self._capacity(index),))
+                                   (templates.slot(self.config.resolution),))
     return measures.bin_weights(values, self.config.bins, self.context.template_range).T
 
   def _scores(self, h, level, index, chunk: int, lead: tuple, ranges, bins):
@@ -220,7 +215,7 @@ class Problem:
 
     `bins`: the set's `_template_bins`, or None to bin each chunk's template
     values as it is scored (cheaper for one pass).  The set is scored `chunk` points at
-    a time (in one piece when its capacity fits).
+    a time (in one piece when the resolution fits in one).
     """
     image = atlas.level(self.context.image, level)
     count = self.template.sets[index, 1]
@@ -232,7 +227,7 @@ class Problem:
       return measures.add(self.measure, stats, template, patch, valid & inside, ranges, weights)
 
     empty = self._empty(h, level, index, lead)
-    return measures.over_chunks(count, chunk, body, empty, self._capacity(index))
+    return measures.over_chunks(count, chunk, body, empty, self.config.resolution)
 
   def _empty(self, h, level, index, lead: tuple):
     """Zero statistics; for "ncc" shifted by the set's first value and the image at the template's centre."""
@@ -390,7 +385,7 @@ class Problem:
 
     def body(start, carry):
       stats, own = carry
-      points, template, inside = self._chunk(templates.FULL, start, FULL_CHUNK)
+      points, template, inside = self._chunk(templates.FULL, start, self.config.resolution)
       patch, valid = materialized(image.sample(h, points), self.knobs)
       valid = valid & inside
       if not mi:
@@ -405,9 +400,9 @@ class Problem:
       return stats, own
 
     empty = self._empty(h, 0, templates.FULL, ())
-    stats, own = measures.over_chunks(count, FULL_CHUNK, body,
+    stats, own = measures.over_chunks(count, self.config.resolution, body,
                                       (empty, measures.empty(self.measure, ()) if mi else None),
-                                      templates.FULL_POINTS)
+                                      self.config.resolution)
     loss = self._loss(stats, templates.FULL, u, base)
     own_loss = None
     if mi:
@@ -766,7 +761,7 @@ def where_needed(mask, compute: Callable, otherwise):
 # ---------------------------------------------------------------- contexts
 def image_range(context: Context, base, config) -> jax.Array:
   """(2,) MI binning range: the template's and the image's where base `base` puts it."""
-  points, _, inside = _full_set(context.template)
+  points, _, inside = _full_set(context.template, config.resolution)
   problem = Problem(context, None, config)
   h = problem.homography(jnp.zeros(problem.dim, jnp.float32), base)
   values, valid = atlas.level(context.image, 0).sample(h, points)

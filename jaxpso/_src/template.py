@@ -12,14 +12,16 @@ their pyramid level:
 * level l < `levels`: the pixels of the template's Gaussian pyramid level l
   (OpenCV's pyrDown).  At level 0 only the `pixels` fraction of largest
   gradient magnitude (at least `MIN_PIXELS`) feeds the refinement; a level
-  of more than `LEVEL_POINTS` pixels keeps that many of largest gradient, so
-  a large template costs no more than a 128×128 one.
+  of more than `resolution` pixels keeps that many of largest gradient, so
+  a large template costs no more than one of `resolution` pixels.
 * `FULL`: the full-resolution pixels of the final loss and `quality`: all
-  of them up to `FULL_POINTS`, over that a regular subsample (every s-th
-  row and column; a 100×100 template keeps every second).  2 560 points
-  judge a match as well as 10 000 did on the convergence and tracking
-  benchmarks, at a quarter of the cost, and fit one chunk
-  (benchmarks/README.md, cold_start).
+  of them up to `resolution`, over that a regular subsample (every s-th
+  row and column; with the default `RESOLUTION` a 100×100 template keeps
+  every second), scored in one chunk.
+
+`resolution` (`TrackConfig.resolution`, static: it sets the arrays'
+capacity) is the budget of points per set; the default's trade-off is
+measured in benchmarks/README.md (resolution).
 
 The constants of the similarities (the template's MI binning range and its
 loss against itself, `quality`'s scale) are computed here too, once.
@@ -38,28 +40,35 @@ import numpy as np
 
 from jaxpso._src import atlas
 
-LEVEL_POINTS = 2560
-"""A pyramid level's points at most (more: those of largest gradient)."""
-FULL_POINTS = 2560
-"""Points of the full-resolution loss and quality at most (more: a regular subsample)."""
+RESOLUTION = 2560
+"""Points per set at most by default (more pixels: those of largest gradient, or a subsample)."""
+MIN_RESOLUTION = 64
+"""The smallest budget (an 8×8 template's pixels)."""
 MIN_PIXELS = 256
 """The level-0 selection keeps at least this many pixels."""
 FULL = atlas.MAX_LEVELS
 """Index of the full-resolution set in `Template.sets`."""
-CHUNK = 512
-"""Every set is padded to a multiple of this."""
-CAPACITY = atlas.MAX_LEVELS * LEVEL_POINTS + FULL_POINTS
-"""Points of a `Template`'s arrays: every set at its largest (a level's `LEVEL_POINTS` read
-from its offset, or the `FULL` set's `FULL_POINTS`, stay inside)."""
+CHUNK = 640
+"""Every set's slot is a multiple of this (the registration's chunks, 640 and 160 points, divide it)."""
+
+
+def slot(resolution: int = RESOLUTION) -> int:
+  """Points reserved for each set: `resolution` rounded up to a multiple of `CHUNK`."""
+  return -(-resolution // CHUNK) * CHUNK
+
+
+def capacity(resolution: int = RESOLUTION) -> int:
+  """Points of a `Template`'s arrays: a `slot` per set."""
+  return (atlas.MAX_LEVELS + 1) * slot(resolution)
 
 
 class Template(NamedTuple):
   """A prepared template (a pytree of arrays; leading batch axes allowed).
 
   Attributes:
-    points: (CAPACITY, 2) float32 (x, y) of every set's points, in pixels of
-      the set's pyramid level; each set zero-padded to a multiple of `CHUNK`.
-    values: (CAPACITY,) float32 their intensities.
+    points: (capacity(resolution), 2) float32 (x, y) of every set's points, in pixels of
+      the set's pyramid level; set i at offset i·`slot(resolution)`, zero-padded.
+    values: (capacity(resolution),) float32 their intensities.
     sets: (MAX_LEVELS + 1, 2) int32 offset and size of the level sets
       ((0, 0) beyond `levels`), then of the `FULL` set.
     levels: () int32 pyramid levels in use.
@@ -91,11 +100,11 @@ def _largest_gradient(image: np.ndarray, count: int) -> np.ndarray:
   return np.sort(np.argpartition(-magnitude, count - 1)[:count])
 
 
-def _subsample(shape) -> np.ndarray:
-  """Flat indices of every s-th row and column, s the smallest keeping at most FULL_POINTS."""
+def _subsample(shape, resolution: int) -> np.ndarray:
+  """Flat indices of every s-th row and column, s the smallest keeping at most `resolution`."""
   rows, cols = shape
   step = 1
-  while math.ceil(rows / step) * math.ceil(cols / step) > FULL_POINTS:
+  while math.ceil(rows / step) * math.ceil(cols / step) > resolution:
     step += 1
   grid = np.arange(0, rows, step)[:, None] * cols + np.arange(0, cols, step)[None, :]
   return grid.reshape(-1)
@@ -150,7 +159,8 @@ def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.n
   return np.array([-mi, -1.0 if textured else 0.0, variance], np.float32)
 
 
-def prepare(template: np.ndarray, levels: int, pixels: float, bins: int) -> Template:
+def prepare(template: np.ndarray, levels: int, pixels: float, bins: int,
+            resolution: int = RESOLUTION) -> Template:
   """(h, w) float32 template → its `Template` (NumPy arrays).
 
   Args:
@@ -158,6 +168,7 @@ def prepare(template: np.ndarray, levels: int, pixels: float, bins: int) -> Temp
     levels: pyramid levels, 1 to MAX_LEVELS.
     pixels: fraction of level 0's pixels (largest gradient) the refinement uses.
     bins: MI's histogram bins (for `Template.self_loss`).
+    resolution: points per set at most.
   """
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
 
@@ -167,21 +178,21 @@ def prepare(template: np.ndarray, levels: int, pixels: float, bins: int) -> Temp
   chosen = []
   for index, level in enumerate(pyramid):
     wanted = max(MIN_PIXELS, math.ceil(pixels * level.size)) if index == 0 else level.size
-    chosen.append((level, _largest_gradient(level, min(wanted, LEVEL_POINTS))))
-  chosen += [None] * (atlas.MAX_LEVELS - levels) + [(pyramid[0], _subsample(pyramid[0].shape))]
-  points = np.zeros((CAPACITY, 2), np.float32)
-  values = np.zeros(CAPACITY, np.float32)
+    chosen.append((level, _largest_gradient(level, min(wanted, resolution))))
+  chosen += [None] * (atlas.MAX_LEVELS - levels)
+  chosen.append((pyramid[0], _subsample(pyramid[0].shape, resolution)))
+  points = np.zeros((capacity(resolution), 2), np.float32)
+  values = np.zeros(capacity(resolution), np.float32)
   sets = np.zeros((atlas.MAX_LEVELS + 1, 2), np.int32)
-  offset = 0
   for index, entry in enumerate(chosen):
     if entry is None:
       continue
     image, flat = entry
     rows, cols = np.divmod(flat, image.shape[1])
+    offset = index * slot(resolution)
     points[offset:offset + flat.size] = np.stack([cols, rows], axis=-1)
     values[offset:offset + flat.size] = image.reshape(-1)[flat]
     sets[index] = offset, flat.size
-    offset += -(-flat.size // CHUNK) * CHUNK
   full = chosen[FULL][0].reshape(-1)[chosen[FULL][1]].astype(np.float64)
   value_range_ = value_range(full)
   return Template(points, values, sets, np.int32(levels), np.asarray(template.shape, np.float32),
@@ -195,15 +206,17 @@ _cache: collections.OrderedDict = collections.OrderedDict()
 _lock = threading.Lock()
 
 
-def prepared(template: np.ndarray, levels: int, pixels: float, bins: int) -> Template:
+def prepared(template: np.ndarray, levels: int, pixels: float, bins: int,
+             resolution: int = RESOLUTION) -> Template:
   """`prepare`, or the same template's earlier preparation (keyed by its content; read-only arrays)."""
   array = np.ascontiguousarray(template, np.float32)
-  key = (array.shape, hashlib.blake2b(array.data, digest_size=16).digest(), levels, pixels, bins)
+  key = (array.shape, hashlib.blake2b(array.data, digest_size=16).digest(), levels, pixels, bins,
+         resolution)
   with _lock:
     if key in _cache:
       _cache.move_to_end(key)
       return _cache[key]
-  result = prepare(array, levels, pixels, bins)
+  result = prepare(array, levels, pixels, bins, resolution)
   for leaf in result:
     if isinstance(leaf, np.ndarray):
       leaf.setflags(write=False)

@@ -125,7 +125,7 @@ def _predict(contexts: register.Context, knobs, config):
     problem = register.Problem(context, knobs, config)
     zero = jnp.zeros((2, problem.dim), jnp.float32)
     h = problem.homography(zero, jnp.arange(2))
-    stats = problem._scores(h, 0, templates.FULL, register.FULL_CHUNK, (2,), problem.ranges(1),
+    stats = problem._scores(h, 0, templates.FULL, config.resolution, (2,), problem.ranges(1),
                             None)
     return problem._loss(stats, templates.FULL, zero, jnp.arange(2))
 
@@ -414,10 +414,10 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   first_estimate = starts if geometry is None else np.broadcast_to(np.eye(4, dtype=np.float32),
                                                                    (count, 4, 4))
   mesh = sharding.batch_mesh(devices, count)
-  prepared = align._stack([templates.prepared(t, c.levels, c.pixels, c.bins)
+  statics = config.statics()
+  prepared = align._stack([templates.prepared(t, c.levels, c.pixels, c.bins, statics.resolution)
                            for t, c in zip(templates_, configs)])
   pyramid = None
-  statics = config.statics()
   if config.method != "pso":
     pyramid = align.template_pyramids(templates_, configs[0].levels)
     statics = align.dataclasses.replace(config, levels=configs[0].levels).statics()
