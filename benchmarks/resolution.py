@@ -87,6 +87,11 @@ def track_rows(resolutions, frames: int) -> list[dict]:
   return rows
 
 
+def _pooled(rows, key: str) -> float:
+  """`key` averaged over every clip's frames."""
+  return sum(r[key] * r["frames"] for r in rows) / sum(r["frames"] for r in rows)
+
+
 def markdown(align, track, resolutions, info, args) -> str:
   """The results table."""
   lines = ["# TrackConfig.resolution: accuracy against time", "", common.machine_line(info), "",
@@ -108,11 +113,8 @@ def markdown(align, track, resolutions, info, args) -> str:
       for resolution in resolutions:
         mine = [r for r in track if r["similarity"] == similarity and r["stride"] == stride
                 and r["resolution"] == resolution]
-        frames = sum(r["frames"] for r in mine)
-        p5 = sum(r["p_at_5"] * r["frames"] for r in mine) / frames
-        error = sum(r["mean_error_px"] * r["frames"] for r in mine) / frames
-        ms = sum(r["ms_per_frame"] * r["frames"] for r in mine) / frames
-        ecc = sum(r["ecc_ms_per_frame"] * r["frames"] for r in mine) / frames
+        p5, error, ms, ecc = (_pooled(mine, key) for key in
+                              ("p_at_5", "mean_error_px", "ms_per_frame", "ecc_ms_per_frame"))
         lines.append(f"| {similarity.upper()} | {stride} | {resolution} | {p5:.1%} | {error:.2f}"
                      f" | {ms:.1f} | {ms / ecc:.2f} |")
   return "\n".join(lines) + "\n"

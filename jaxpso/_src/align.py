@@ -585,8 +585,8 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
     bases = np.broadcast_to(np.eye(4, dtype=np.float32), (len(starts), 2, 4, 4))
   else:
     bases = np.repeat((to_window @ np.stack(starts))[:, None], 2, axis=1).astype(np.float32)
-  resolution = config.statics().resolution
-  prepared = _stack([templates.prepared(t, c.levels, c.pixels, c.bins, resolution)
+  statics = config.statics()
+  prepared = _stack([templates.prepared(t, c.levels, c.pixels, c.bins, statics.resolution)
                      for t, c in zip(templates_, configs)])
   arguments = (_stack(pyramids), prepared, bases, geometry, element_seeds(key, len(starts)),
                offsets)
@@ -595,7 +595,7 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
     arguments = sharding.split(arguments, mesh)
   knobs = config.knobs()
   if config.method == "pso":
-    result = _align(*arguments, knobs, config=config.statics())
+    result = _align(*arguments, knobs, config=statics)
   else:
     levels = template_pyramids(templates_, configs[0].levels)
     result = _align_baseline(arguments[0], sharding.split(levels, mesh) if mesh else levels,
