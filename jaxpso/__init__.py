@@ -13,8 +13,8 @@ Importing jaxpso does not import OpenCV or matplotlib.
 
 from jaxpso._src.align import AlignResult
 from jaxpso._src.align import AlignStatus
-from jaxpso._src.align import TrackConfig
 from jaxpso._src.align import align
+from jaxpso._src.config import TrackConfig
 from jaxpso._src.baselines import METHODS
 from jaxpso._src.programs import cache_dir
 from jaxpso._src.programs import set_cache_dir

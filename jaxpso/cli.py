@@ -32,7 +32,7 @@ import time
 import jaxpso
 from jaxpso import io
 from jaxpso import synthetic
-from jaxpso._src import align
+from jaxpso._src import config as configs
 
 _FPS = 25.0
 
@@ -55,11 +55,11 @@ def _default(name: str):
 def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
   """The `TrackConfig` settings both commands take; None keeps the config's default."""
   group = parser.add_argument_group("tracker options (default: jaxpso.TrackConfig's)")
-  group.add_argument("--similarity", choices=align.SIMILARITIES,
+  group.add_argument("--similarity", choices=configs.SIMILARITIES,
                      help=f"similarity measure (default {_default('similarity')})")
-  group.add_argument("--motion", choices=align.MOTIONS,
+  group.add_argument("--motion", choices=configs.MOTIONS,
                      help=f"motion model (default {_default('motion')})")
-  group.add_argument("--dof", type=int, choices=align.DOFS,
+  group.add_argument("--dof", type=int, choices=configs.DOFS,
                      help=f"pose parameters of motion plane (default {_default('dof')})")
   group.add_argument("--swarm-size", type=int, dest="swarm_size",
                      help=f"particles (default {_default('swarm_size')})")
@@ -70,7 +70,7 @@ def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
                      help=f"searched box half-width in px (default {_default('search_radius')})")
   group.add_argument("--levels", type=int,
                      help="pyramid levels (default: by the template's size, at most"
-                     f" {align.AUTO_LEVELS})")
+                     f" {configs.AUTO_LEVELS})")
   group.add_argument("--resolution", type=int,
                      help="points per template set at most (default 2560, about 50x50)")
   group.add_argument("--refine-steps", type=int, dest="refine_steps",

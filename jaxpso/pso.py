@@ -7,22 +7,22 @@ termination settings of `PSOConfig` reach the loop as `PSOLimits` arrays, so
 changing them does not recompile `run`.
 """
 
-from jaxpso._src.pso import BOUNDARIES
-from jaxpso._src.pso import RNGS
-from jaxpso._src.pso import TOPOLOGIES
-from jaxpso._src.pso import VARIANTS
-from jaxpso._src.pso import PSOConfig
-from jaxpso._src.pso import PSOHParams
-from jaxpso._src.pso import PSOLimits
-from jaxpso._src.pso import PSOResult
-from jaxpso._src.pso import PSOState
-from jaxpso._src.pso import PSOTrace
-from jaxpso._src.pso import Status
-from jaxpso._src.pso import default_hparams
 from jaxpso._src.pso import init
 from jaxpso._src.pso import run
 from jaxpso._src.pso import step
 from jaxpso._src.pso import trace
+from jaxpso._src.pso_types import BOUNDARIES
+from jaxpso._src.pso_types import RNGS
+from jaxpso._src.pso_types import TOPOLOGIES
+from jaxpso._src.pso_types import VARIANTS
+from jaxpso._src.pso_types import PSOConfig
+from jaxpso._src.pso_types import PSOHParams
+from jaxpso._src.pso_types import PSOLimits
+from jaxpso._src.pso_types import PSOResult
+from jaxpso._src.pso_types import PSOState
+from jaxpso._src.pso_types import PSOTrace
+from jaxpso._src.pso_types import Status
+from jaxpso._src.pso_types import default_hparams
 
 __all__ = (
     "BOUNDARIES",

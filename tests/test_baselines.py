@@ -8,11 +8,12 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxpso._src import align
 from jaxpso._src import atlas
 from jaxpso._src import baselines
+from jaxpso._src import problem as problems
 from jaxpso._src import register
 from jaxpso._src import template as templates
+from jaxpso._src.config import TrackConfig
 from jaxpso._src.data import load_image
 
 SIZE = 64
@@ -56,11 +57,11 @@ def _frame(image):
 
 def _register(frame, template, start, *, method, similarity):
   """register.baseline on the whole image from `start` → (homography, start, loss, its, evals)."""
-  config = align.TrackConfig(method=method, similarity=similarity, levels=LEVELS,
-                             max_iterations=ITERATIONS.get(method, 30)).statics()
+  config = TrackConfig(method=method, similarity=similarity, levels=LEVELS,
+                       max_iterations=ITERATIONS.get(method, 30)).statics()
   prepared = templates.prepare(np.asarray(template, np.float32), LEVELS, config.pixels,
                                config.bins)
-  pyramid = [level[0] for level in align.template_pyramids([template], LEVELS)]
+  pyramid = [level[0] for level in baselines.template_pyramids([template], LEVELS)]
   bases = np.stack([start, start]).astype(np.float32)
   return _registered(frame, prepared, pyramid, bases, config.knobs(), config=config)
 
@@ -69,8 +70,8 @@ def _register(frame, template, start, *, method, similarity):
 def _registered(frame, prepared, pyramid, bases, knobs, *, config):
   context = register.context(frame, prepared, bases, None, jnp.zeros(2, jnp.uint32), config)
   found = register.baseline(context, pyramid, knobs, config)
-  start = register.Problem(context, knobs, config).homography(jnp.zeros(8), 0)
-  return (found.homography, register.normalized(start), found.loss, found.num_iterations,
+  start = problems.Problem(context, knobs, config).homography(jnp.zeros(8), 0)
+  return (found.homography, problems.normalized(start), found.loss, found.num_iterations,
           found.num_evaluations)
 
 

@@ -16,8 +16,8 @@ import pytest
 
 import jaxpso
 from jaxpso.data import load_image
+from jaxpso._src import batching
 from jaxpso._src import programs
-from jaxpso._src import register
 
 
 def programs_made() -> int:
@@ -139,7 +139,7 @@ def test_where_needed_computes_exactly_the_needing_elements(size):
   def run(mask):
     def compute(indices):
       return (values[indices] + 100.0, jnp.ones_like(indices))
-    return register.where_needed(mask, compute, (values, jnp.zeros(size, jnp.int32)))
+    return batching.where_needed(mask, compute, (values, jnp.zeros(size, jnp.int32)))
 
   for mask in [np.zeros(size, bool), np.ones(size, bool),
                np.random.default_rng(size).uniform(size=size) < 0.3]:

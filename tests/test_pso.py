@@ -24,11 +24,11 @@ import numpy as np
 import pytest
 
 from jaxpso import pso
-from jaxpso._src.pso import _neighbourhood_best
 from jaxpso._src.pso import _run
 from jaxpso._src.pso import _run_impl
-from jaxpso._src.pso import _uniform
-from jaxpso._src.pso import _uniform_pair
+from jaxpso._src.swarm_random import _uniform
+from jaxpso._src.swarm_random import _uniform_pair
+from jaxpso._src.topology import _neighbourhood_best
 
 D = 3
 LOWER = jnp.full(D, -5.0)

@@ -29,8 +29,8 @@ def _checks():
 
   import jaxpso
   from jaxpso import pso
-  from jaxpso._src import align
   from jaxpso._src import atlas
+  from jaxpso._src import batching
   from jaxpso._src import sharding
   from jaxpso._src import template as templates
   from jaxpso._src import track as track_module
@@ -71,7 +71,7 @@ def _checks():
   # The frame step keeps the regions split: each device's carry holds its region.
   mesh = sharding.batch_mesh(None, 4)
   template = np.ascontiguousarray(sequence.frames[0, :32, :32])
-  prepared = align._stack([templates.prepare(template, 1, 0.25, 16)] * 4)
+  prepared = batching.stack([templates.prepare(template, 1, 0.25, 16)] * 4)
   constants = sharding.split(track_module._Constants(prepared, None, np.zeros((4, 2), np.uint32),
                                                      None), mesh)
   assert shards(constants.template.values) == {d: (1, templates.capacity()) for d in devices}

@@ -165,6 +165,19 @@ def pyramid_levels(method: str, shape, levels: int) -> int:
   return used
 
 
+def template_pyramids(templates_: list, levels: int) -> list:
+  """The baselines' dense template levels: `levels` arrays (N, h_l, w_l) of equally shaped templates."""
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  pyramids = []
+  for t in templates_:
+    pyramid = [np.ascontiguousarray(t, np.float32)]
+    for _ in range(levels - 1):
+      pyramid.append(cv2.pyrDown(pyramid[-1]))
+    pyramids.append(pyramid)
+  return [np.stack(level) for level in zip(*pyramids)]
+
+
 def _corners(h, shape) -> jax.Array:
   """(3, 3) homography → (8,) its images of the template's corners TL, TR, BR, BL."""
   mapped, _ = homography.apply_to_points(h, homography.rect_corners(shape))

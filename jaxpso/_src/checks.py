@@ -3,16 +3,28 @@
 Every check runs on static information (shapes, dtypes) or on concrete host
 values, so it raises before anything is traced.  Messages name the argument and
 the offending shape, dtype or value.
+
+The checks of `align`'s and `track`'s images, templates and start
+homographies are here too (`to_gray`, `check_texture`, `check_template_size`,
+`check_image_size`, `check_start`), with the limits they enforce
+(`MIN_TEXTURE`, `TEMPLATE_SIDES`), so that both entry points refuse the same
+inputs with the same messages.
 """
 
 from __future__ import annotations
 
 import numbers
 from collections.abc import Sequence
+from typing import TYPE_CHECKING, Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from jaxpso._src import atlas
+
+if TYPE_CHECKING:
+  from jaxpso._src.config import TrackConfig
 
 
 def as_float_array(value, name: str) -> jax.Array:
@@ -99,3 +111,87 @@ def as_checked(value, trailing: Sequence[int], name: str, layout: str) -> jax.Ar
   check_trailing(array, trailing, name, layout)
   check_finite_if_concrete(array, name)
   return array
+
+
+def to_gray(image, name: str):
+  """(H, W) or (H, W, 3) uint8 or float image → (H, W) float32 grey in [0, 1].
+
+  NumPy in, NumPy out (no device work before the compiled call); a JAX array
+  stays a JAX array.
+  """
+  xp = jnp if isinstance(image, jax.Array) else np
+  array = image if xp is jnp else np.asarray(image)
+  if array.dtype != np.uint8 and not np.issubdtype(array.dtype, np.floating):
+    raise TypeError(f"{name} must be uint8 or float, got dtype {array.dtype}")
+  if not (array.ndim == 2 or (array.ndim == 3 and array.shape[-1] == 3)):
+    raise ValueError(f"{name} must be (H, W) grey or (H, W, 3) colour, got shape {array.shape}")
+  grey = array.astype(xp.float32) if xp is jnp else array.astype(np.float32, copy=False)
+  if array.dtype == np.uint8:
+    grey = grey * xp.float32(1 / 255)
+  if grey.ndim == 3:
+    grey = grey @ xp.asarray([0.299, 0.587, 0.114], xp.float32)
+  if min(grey.shape) < 2:
+    raise ValueError(f"{name} must be at least 2×2 pixels, got shape {grey.shape}")
+  check_finite_if_concrete(grey, name)
+  return grey
+
+
+# A template whose intensity standard deviation (intensities in [0, 1]) is
+# below this is textureless: 2.5 grey levels of 8-bit video, what
+# quantisation and sensor noise alone give a flat surface.  Such templates
+# (std 0.008) had passed a 1e-3 threshold and then drifted while reported tracked.
+MIN_TEXTURE = 0.01
+
+
+def check_texture(spreads, describe: Callable[[int], str]) -> None:
+  """ValueError naming `describe(i)` for the first template whose std in `spreads` (N,) is too low."""
+  for i in np.flatnonzero(~(np.asarray(spreads) >= MIN_TEXTURE)):
+    raise ValueError(f"{describe(int(i))} is textureless (intensity std {spreads[i]:.2g}"
+                     f" < {MIN_TEXTURE}): nothing to align")
+
+
+# Supported template sides (pixels): the coarsest level needs a few pixels,
+# and beyond the largest the template's pyramid would need more levels.
+TEMPLATE_SIDES = (8, 4096)
+
+
+def check_template_size(shape, config: TrackConfig, name: str) -> None:
+  """ValueError naming `name` when a side is outside `TEMPLATE_SIDES`, the coarsest level is
+  under 4 px or `TrackConfig.resolution` exceeds its pixels."""
+  low, high = TEMPLATE_SIDES
+  if not low <= min(shape) or not max(shape) <= high:
+    raise ValueError(f"{name} of shape {tuple(shape)} is outside the supported sizes: every side"
+                     f" must be {low} to {high} pixels")
+  if config.resolution is not None and config.resolution > shape[0] * shape[1]:
+    raise ValueError(f"TrackConfig.resolution={config.resolution} is larger than {name} of shape"
+                     f" {tuple(shape)} ({shape[0] * shape[1]} pixels)")
+  if min(shape) / 2 ** (config.levels - 1) < 4:
+    raise ValueError(
+        f"{name} of shape {tuple(shape)} is too small for levels={config.levels}:"
+        " the coarsest level would be under 4 px")
+
+
+def check_image_size(shape, config: TrackConfig, name: str) -> None:
+  """ValueError naming `name` when the image's coarsest level would be under 2×2 pixels."""
+  coarsest = atlas.level_shapes(shape, config.levels)[-1]
+  if min(coarsest) < 2:
+    raise ValueError(f"levels={config.levels} is too many for {name} of shape {tuple(shape)}:"
+                     " its coarsest level would be smaller than 2×2")
+
+
+def check_start(start, template_shape, name: str) -> np.ndarray:
+  """A validated (3, 3) float64 start homography (ValueError naming `name`)."""
+  start = np.asarray(start)
+  if not np.issubdtype(start.dtype, np.number) or start.shape != (3, 3):
+    raise ValueError(f"{name} must be a (3, 3) real matrix, got {start.dtype}{start.shape}")
+  start = start.astype(np.float64)
+  if not np.all(np.isfinite(start)) or abs(np.linalg.det(start)) < 1e-12:
+    raise ValueError(f"{name} must be finite and invertible, got {start.tolist()!r}")
+  # w of one sign at the corners: the template is not cut by the horizon (-H is H).
+  rows, cols = template_shape
+  corners = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]])
+  depth = corners @ start[2, :2] + start[2, 2]
+  if not (np.all(depth > 0) or np.all(depth < 0)):
+    raise ValueError(f"{name} must map every template corner to a finite point"
+                     f" (w of one sign), got w = {depth.tolist()} for {start.tolist()!r}")
+  return start

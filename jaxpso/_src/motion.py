@@ -79,6 +79,43 @@ def plane_geometry(camera, normal, template_to_frame0, shape, dof: int) -> Plane
   return Plane(camera, normal, template_to_frame0, per_axis[np.asarray(plane.DOF_AXES[dof])])
 
 
+def checked_plane_geometry(camera, plane_normal, frame_shape, h0, shape, dof):
+  """Validated `Plane` from the user's camera and normal (None: the defaults).
+
+  Args:
+    camera: (3, 3) K or None (`plane.default_camera` of `frame_shape`).
+    plane_normal: (3,) normal in frame-0 camera coordinates or None (0, 0, 1).
+    frame_shape: (H, W) of the frame the template was cut from.
+    h0: (3, 3) template → that frame.  shape: template (h, w).  dof: 2, 4 or 6.
+  """
+  k = (np.asarray(plane.default_camera(frame_shape), np.float64) if camera is None
+       else np.asarray(camera, np.float64))
+  if k.shape != (3, 3) or not np.all(np.isfinite(k)) or abs(np.linalg.det(k)) < 1e-12:
+    raise ValueError(f"camera must be a finite, invertible 3×3 matrix, got {camera!r}")
+  n = np.array([0.0, 0.0, 1.0]) if plane_normal is None else np.asarray(plane_normal, np.float64)
+  if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
+    raise ValueError(f"plane_normal must be a finite non-zero 3-vector, got {plane_normal!r}")
+  n = n / np.linalg.norm(n)
+  centre = np.asarray(h0, np.float64) @ np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2, 1.0])
+  ray = np.linalg.solve(k, centre / centre[2])
+  if not n @ ray > 1e-6:
+    raise ValueError(
+        f"plane_normal {plane_normal!r} puts the template's plane behind the camera: n·X = d > 0"
+        " must hold for the points X seen in the template")
+  return plane_geometry(jnp.asarray(k, jnp.float32), jnp.asarray(n, jnp.float32), h0, shape, dof)
+
+
+def checked_plane_geometries(camera, plane_normal, frame_shape, starts, shapes, dof):
+  """`checked_plane_geometry` of each start in `starts` (R, 3, 3), stacked (NumPy).
+
+  `shapes`: the R templates' (h, w).
+  """
+  return jax.tree.map(lambda *leaves: np.stack(leaves), *[
+      jax.tree.map(np.asarray, checked_plane_geometry(camera, plane_normal, frame_shape,
+                                                      np.asarray(h, np.float32), shape, dof))
+      for h, shape in zip(starts, shapes)])
+
+
 def plane_pose(u, base_pose, geometry: Plane, dof: int) -> jax.Array:
   """T(u) · T_base: (…, dof) parameters → (…, 4, 4) frame-0 → frame poses."""
   step = plane.pose_from_params(plane.expand_dof(u * geometry.unit, dof))

@@ -14,7 +14,7 @@ maximised, so the refinement keeps its invariances:
 T̃ is re-estimated at every step from sums over the template's points
 (`adapted_coefficients`), and a step is accepted only when it improves the
 similarity itself, not the SSD.  The caller linearises (it knows the image and the
-template, `jaxpso._src.register`); this module holds the photometric model
+template, `jaxpso._src.problem`); this module holds the photometric model
 and the damped loop.
 """
 

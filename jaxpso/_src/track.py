@@ -19,6 +19,7 @@ Neither the frame size nor the regions' sizes enter the compiled program.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import functools
 import itertools
@@ -29,16 +30,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxpso._src import align
 from jaxpso._src import atlas
+from jaxpso._src import baselines
+from jaxpso._src import batching
+from jaxpso._src import checks
 from jaxpso._src import homography
 from jaxpso._src import motion
 from jaxpso._src import plane
+from jaxpso._src import problem as problems
 from jaxpso._src import programs
-from jaxpso._src import pso
 from jaxpso._src import register
 from jaxpso._src import sharding
+from jaxpso._src import swarm_random
 from jaxpso._src import template as templates
+from jaxpso._src.config import TrackConfig
+from jaxpso._src.config import score_sign
 
 
 class TrackStatus(enum.IntEnum):
@@ -55,7 +61,7 @@ class TrackResult(NamedTuple):
     homographies: (T, 3, 3) template pixel → frame pixel, h[2, 2] = 1.
     corners: (T, 4, 2) the template's corners (TL, TR, BR, BL) in each frame.
     scores: (T,) similarity at the estimate (an error for "ssd").
-    quality: (T,) `register.quality` of the estimate: about 1 for a match,
+    quality: (T,) `problem.quality` of the estimate: about 1 for a match,
       lower the worse (1 at frame 0; `TrackConfig.lost_threshold` is the
       threshold).
     status: (T,) int32 `TrackStatus`.
@@ -94,7 +100,7 @@ class _Carry(NamedTuple):
   estimate: jax.Array  # (R, 3, 3) homography or (R, 4, 4) pose: the last good estimate
   velocity: jax.Array  # same shape: estimate_t · estimate_{t-1}⁻¹
   frame: jax.Array  # (R,) int32 index of the next frame
-  reference: jax.Array  # (R,) float32 the quality of the last searched match (`register.Context`)
+  reference: jax.Array  # (R,) float32 the quality of the last searched match (`problem.Context`)
 
 
 def _inverse(m):
@@ -115,14 +121,14 @@ def _damped(velocity):
 
 
 def _frame_seed(seed, frame):
-  return jnp.stack([seed[0], pso._mix(seed[1] ^ pso._mix(frame.astype(jnp.uint32)))])
+  return jnp.stack([seed[0], swarm_random._mix(seed[1] ^ swarm_random._mix(frame.astype(jnp.uint32)))])
 
 
-def _predict(contexts: register.Context, knobs, config):
+def _predict(contexts: problems.Context, knobs, config):
   """Contexts whose start (base 0, the prediction) falls back to the previous estimate (base 1)
   where that scores better over the full-resolution set (`template.FULL`)."""
   def losses(context):
-    problem = register.Problem(context, knobs, config)
+    problem = problems.Problem(context, knobs, config)
     zero = jnp.zeros((2, problem.dim), jnp.float32)
     h = problem.homography(zero, jnp.arange(2))
     stats = problem._scores(h, 0, templates.FULL, config.resolution, (2,), problem.ranges(1),
@@ -130,7 +136,7 @@ def _predict(contexts: register.Context, knobs, config):
     return problem._loss(stats, templates.FULL, zero, jnp.arange(2))
 
   contexts = register.with_range(contexts, jnp.ones(contexts.seed.shape[0], bool), config)
-  keep = register.each(losses, contexts)
+  keep = batching.each(losses, contexts)
   previous = keep[:, 0] > keep[:, 1]
 
   def fall_back(a):
@@ -141,14 +147,14 @@ def _predict(contexts: register.Context, knobs, config):
 
 
 @functools.partial(programs.Program, static_argnames=("config",))
-def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs: register.Knobs,
-                *, config: align.TrackConfig):
+def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs: problems.Knobs,
+                *, config: TrackConfig):
   """One frame of R regions: (carry, the frame's atlas, shared (1-D pixels) or one per region) →
   (carry, per-frame outputs, each with the leading R)."""
   seeds = jax.vmap(_frame_seed)(constants.seed, carry.frame)
   predicted = jnp.where(knobs.predict, _damped(carry.velocity) @ carry.estimate, carry.estimate)
   bases = jnp.stack([predicted, carry.estimate], axis=1)
-  contexts = register.each(lambda *a: register.context(*a, config), image, constants.template,
+  contexts = batching.each(lambda *a: register.context(*a, config), image, constants.template,
                            bases, constants.geometry, seeds)
   # A shared image stays shared (`vmap` returned it copied per region).
   contexts = contexts._replace(image=image, reference=carry.reference)
@@ -158,7 +164,7 @@ def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs:
     state = register.run(contexts, knobs, "track", config)
     found, recovered, searched = state.best, state.recovered, state.searched
   else:
-    found = register.each(lambda c, p: register.baseline(c, p, knobs, config), contexts,
+    found = batching.each(lambda c, p: register.baseline(c, p, knobs, config), contexts,
                           constants.pyramid)
     recovered = searched = jnp.zeros(found.loss.shape, bool)
   quality = found.quality
@@ -170,18 +176,18 @@ def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs:
   if config.motion != "homography":
     estimate = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(
         found.u, base, constants.geometry)
-  estimate = register.select(lost, carry.estimate, estimate)
+  estimate = batching.select(lost, carry.estimate, estimate)
   identity = jnp.broadcast_to(jnp.eye(estimate.shape[-1], dtype=estimate.dtype), estimate.shape)
-  velocity = register.select(lost, identity, estimate @ jax.vmap(_inverse)(carry.estimate))
+  velocity = batching.select(lost, identity, estimate @ jax.vmap(_inverse)(carry.estimate))
   h = found.homography
   if config.motion != "homography":
     zero = jnp.zeros(motion.dimension(config.motion, config.dof), jnp.float32)
-    h = jax.vmap(lambda e, g, size: register.normalized(motion.to_homography(
+    h = jax.vmap(lambda e, g, size: problems.normalized(motion.to_homography(
         zero, base=e, geometry=g, shape=size, motion=config.motion, dof=config.dof)))(
             estimate, constants.geometry, constants.template.size)
-  h = register.select(lost, jax.vmap(register.normalized)(_last_homography(carry, constants,
+  h = batching.select(lost, jax.vmap(problems.normalized)(_last_homography(carry, constants,
                                                                             config)), h)
-  outputs = dict(homography=h, score=align.score_sign(config) * found.loss, quality=quality,
+  outputs = dict(homography=h, score=score_sign(config) * found.loss, quality=quality,
                  status=status.astype(jnp.int32), estimate=estimate,
                  num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
   # A search's match sets the reference; an accepted start only raises it.
@@ -320,7 +326,7 @@ def _starts(regions: list) -> np.ndarray:
   return (h / h[:, 2:, 2:]).astype(np.float32)
 
 
-def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0, camera=None,
+def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=None,
           plane_normal=None, sequences: bool = False, devices=None,
           progress: bool = False) -> TrackResult:
   """Tracks the region `roi` of frame 0 through `frames`; or a batch of regions.
@@ -340,7 +346,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
       With `sequences=True`: (R, T, H, W[, 3]), or R such sequences of one length.
     roi: (x, y, w, h) box in frame 0 (integer w, h), or (4, 2) corners TL,
       TR, BR, BL in frame-0 pixels; or (R, 4) boxes or (R, 4, 2) corners.
-      Each side of a region's template `align.TEMPLATE_SIDES` (8 to 4096) pixels.
+      Each side of a region's template `checks.TEMPLATE_SIDES` (8 to 4096) pixels.
     config: `TrackConfig` (motion, similarity, swarm, refinement, recovery).
     key: int seed or PRNG key; a fixed key gives bit-identical results.
     camera: (3, 3) intrinsics K for motion "plane"; default f = max(H, W) and
@@ -363,7 +369,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
       sizes or textureless, a bad camera or normal.  TypeError: a bad dtype
       or config.
   """
-  if not isinstance(config, align.TrackConfig):
+  if not isinstance(config, TrackConfig):
     raise TypeError(f"config must be a TrackConfig, got {type(config).__name__}")
   rois, batched = _regions(roi)
   count = len(rois)
@@ -379,7 +385,7 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
   def frame_name(r, index):
     return f"frames[{r}][{index}]" if sequences else f"frames[{index}]"
 
-  frame0 = [np.asarray(align.to_gray(f, frame_name(r, 0))) for r, f in enumerate(first)]
+  frame0 = [np.asarray(checks.to_gray(f, frame_name(r, 0))) for r, f in enumerate(first)]
   if any(f.shape != frame0[0].shape for f in frame0):
     raise ValueError(f"the sequences' frames must have one size, got {[f.shape for f in frame0]}")
   frame_shape = frame0[0].shape
@@ -394,19 +400,19 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
                      f" {sorted(set(shapes))}")
   configs = [config.for_template(shape) for shape in shapes]
   for r, (shape, c) in enumerate(zip(shapes, configs)):
-    align.check_template_size(shape, c, name(r))
+    checks.check_template_size(shape, c, name(r))
   levels = max(c.levels for c in configs)
-  align.check_image_size(frame_shape, configs[int(np.argmax([c.levels for c in configs]))],
-                         "frames[0]")
+  checks.check_image_size(frame_shape, configs[int(np.argmax([c.levels for c in configs]))],
+                          "frames[0]")
   pixels = [frame0[r if sequences else 0] for r in range(count)]
   templates_ = [_template(f, corners, shape) for f, (corners, shape) in zip(pixels, regions)]
-  align.check_texture(np.array([np.std(t) for t in templates_]),
-                      lambda r: f"{name(r)} {rois[r]!r}")
+  checks.check_texture(np.array([np.std(t) for t in templates_]),
+                       lambda r: f"{name(r)} {rois[r]!r}")
   starts = _starts(regions)
   geometry = None
   if config.motion == "plane":
-    geometry = align.plane_geometries(camera, plane_normal, frame_shape, starts, shapes,
-                                      config.dof)
+    geometry = motion.checked_plane_geometries(camera, plane_normal, frame_shape, starts,
+                                               shapes, config.dof)
   elif camera is not None or plane_normal is not None:
     raise ValueError("camera and plane_normal apply to motion 'plane' only;"
                      f" got TrackConfig.motion={config.motion!r}")
@@ -415,13 +421,13 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
                                                                    (count, 4, 4))
   mesh = sharding.batch_mesh(devices, count)
   statics = config.statics()
-  prepared = align._stack([templates.prepared(t, c.levels, c.pixels, c.bins, statics.resolution)
-                           for t, c in zip(templates_, configs)])
+  prepared = batching.stack([templates.prepared(t, c.levels, c.pixels, c.bins, statics.resolution)
+                             for t, c in zip(templates_, configs)])
   pyramid = None
   if config.method != "pso":
-    pyramid = align.template_pyramids(templates_, configs[0].levels)
-    statics = align.dataclasses.replace(config, levels=configs[0].levels).statics()
-  constants = sharding.split(_Constants(prepared, geometry, align.element_seeds(key, count),
+    pyramid = baselines.template_pyramids(templates_, configs[0].levels)
+    statics = dataclasses.replace(config, levels=configs[0].levels).statics()
+  constants = sharding.split(_Constants(prepared, geometry, batching.element_seeds(key, count),
                                         pyramid), mesh)
   carry = sharding.split(_Carry(
       first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32), (count, size, size)),
@@ -437,13 +443,13 @@ def track(frames, roi, *, config: align.TrackConfig = align.TrackConfig(), key=0
       num_evaluations=np.zeros(count, np.int32)).items()}]
   outputs = []
   for index, raw in enumerate(iterator, start=1):
-    images = [np.asarray(align.to_gray(f, frame_name(r, index))) for r, f in enumerate(raw)]
+    images = [np.asarray(checks.to_gray(f, frame_name(r, index))) for r, f in enumerate(raw)]
     for r, image in enumerate(images):
       if image.shape != frame_shape:
         raise ValueError(f"{frame_name(r, index)} has shape {image.shape}, frame 0 has"
                          f" {frame_shape}: all frames must have one size")
     if sequences:
-      image = sharding.split(align._stack([atlas.build(i, levels, capacity) for i in images]),
+      image = sharding.split(batching.stack([atlas.build(i, levels, capacity) for i in images]),
                              mesh)
     else:
       image = sharding.replicate(atlas.build(images[0], levels, capacity), mesh)

@@ -1,0 +1,144 @@
+"""`align`'s and `track`'s batches: on the host (NumPy, around the compiled call) and in the program.
+
+A batch of N alignments or R regions is one compiled program over a leading
+axis: its arguments arrive as lists (`elements`), are prepared element by
+element and stacked (`stack`), each element gets its own swarm seed
+(`element_seeds`), and an unbatched call reads element 0 of the result
+(`first`).
+
+In the program, a batch is a pytree with that leading axis on every leaf,
+except an `atlas.Atlas` with 1-D pixels, which the batch shares (`track`'s
+frame: one image for every region) and which is neither mapped nor
+indexed.  `each` maps an unbatched function (`problem.Problem`'s steps)
+over the elements, `select` and `take` pick per element, and `where_needed`
+runs a computation only for the elements that need it: under `vmap` a
+per-element `lax.cond` runs both branches for every element (and a
+`while_loop` with a per-element condition becomes selects over its whole
+carry), so `register.run`'s later stages, the swarm above all, would run
+for the whole batch.
+"""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxpso._src import atlas
+from jaxpso._src import swarm_random
+
+
+def elements(value, batched: bool, name: str) -> list:
+  """The elements of a batched argument (a list of one if not batched)."""
+  if not batched:
+    return [value]
+  if isinstance(value, (str, bytes)) or not hasattr(value, "__len__"):
+    raise TypeError(f"{name} must be a batch (a leading N axis), got {type(value).__name__}")
+  return list(value)
+
+
+def stack(trees: list):
+  """A list of equally structured NumPy pytrees → one with a leading axis (a view for one tree)."""
+  if len(trees) == 1:
+    return jax.tree.map(lambda leaf: np.asarray(leaf)[None], trees[0])
+  return jax.tree.map(lambda *leaves: np.stack(leaves), *trees)
+
+
+def element_seeds(key, count: int) -> np.ndarray:
+  """(count, 2) uint32 swarm seeds of a batch from one key; element 0's is the key's own.
+
+  On the host: as device operations these cost 1 ms per `align` call.
+  """
+  seed = np.asarray(swarm_random._as_seed(key))
+  offsets = np.arange(count, dtype=np.uint32) * np.uint32(0x9E3779B9)  # wraps modulo 2³²
+  return np.stack([np.full(count, seed[0]), seed[1] + offsets], axis=-1)
+
+
+# Element 0 of every field as one call (indexing each field eagerly cost 2 ms per `align`).
+first = jax.jit(lambda tree: jax.tree.map(lambda a: a[0], tree))
+
+
+# ------------------------------------------------------------ in the program
+def _shared(node) -> bool:
+  """Whether `node` is an `atlas.Atlas` shared by a batch (1-D pixels)."""
+  return isinstance(node, atlas.Atlas) and node.pixels.ndim == 1
+
+
+def _axes(tree):
+  """vmap axes of a batched pytree: 0, but None for a shared `atlas.Atlas`."""
+  return jax.tree.map(lambda node: None if _shared(node) else 0, tree, is_leaf=_shared)
+
+
+def _mapped(fn, tree):
+  """`fn` on every leaf of `tree` but a shared `atlas.Atlas`'s."""
+  return jax.tree.map(lambda node: node if _shared(node) else fn(node), tree, is_leaf=_shared)
+
+
+def each(fn: Callable, *args):
+  """`jax.vmap(fn)(*args)` over the leading axis, or for a batch of one `fn` on the element itself.
+
+  An `atlas.Atlas` with 1-D pixels is shared by the batch (not mapped).
+  Under `vmap`, every `while_loop` with a per-element condition becomes a
+  loop of selects over its whole carry (and a `cond` runs both branches):
+  for one element that only cost compilation time and run time.
+  """
+  count = next(a.shape[0] for a in jax.tree.leaves(args, is_leaf=_shared) if not _shared(a))
+  if count != 1:
+    return jax.vmap(fn, in_axes=_axes(args))(*args)
+  return jax.tree.map(lambda a: a[None], fn(*_mapped(lambda a: a[0], args)))
+
+
+def select(mask, first, second):
+  """Per batch element `first` where the (R,) or () `mask` holds, else `second` (pytrees)."""
+  return jax.tree.map(
+      lambda a, b: jnp.where(mask.reshape(mask.shape + (1,) * (a.ndim - mask.ndim)), a, b),
+      first, second)
+
+
+def take(tree, indices):
+  """The elements `indices` (C,) of every leaf's leading axis (a shared `atlas.Atlas` as it is)."""
+  return _mapped(lambda a: a[indices], tree)
+
+
+def _share() -> int:
+  """A batch of R runs its later stages on ceil(R / _share()) elements at a time (`where_needed`).
+
+  32 on a CPU, where the work is compute-bound and an idle slot of a round
+  costs as much as a busy one (benchmarks/README.md, batch).  8 on
+  accelerators, whose slots run in parallel (not measured on a GPU).
+  """
+  return 32 if jax.default_backend() == "cpu" else 8
+
+
+def where_needed(mask, compute: Callable, otherwise):
+  """`otherwise` with the elements where the (R,) `mask` holds replaced by `compute`'s.
+
+  `compute(indices)` gets (C,) element indices and returns those elements'
+  results (leading C).  Only the elements that need it are computed, C =
+  ceil(R / _share()) at a time in a `lax.while_loop` of as many rounds as
+  needed (none when no element does).
+  """
+  size = mask.shape[0]
+  capacity = -(-size // _share())
+  padded = -(-size // capacity) * capacity
+  needed = jnp.sum(mask)
+  # The needing elements first; every other slot is the out-of-range index `size`.
+  order = jnp.argsort(~mask, stable=True)
+  order = jnp.where(jnp.arange(size) < needed, order, size)
+  order = jnp.concatenate([order, jnp.full(padded - size, size, order.dtype)])
+
+  def round_(state):
+    done, results = state
+    indices = jax.lax.dynamic_slice(order, (done,), (capacity,))
+    found = compute(jnp.minimum(indices, size - 1))
+    results = jax.tree.map(lambda a, f: a.at[indices].set(f, mode="drop"), results, found)
+    return done + capacity, results
+
+  def rounds(_):
+    return jax.lax.while_loop(lambda state: state[0] < needed, round_,
+                              (jnp.zeros([], needed.dtype), otherwise))[1]
+
+  # The cond keeps batches that need nothing from entering the loop at all.
+  return jax.lax.cond(needed > 0, rounds, lambda _: otherwise, None)

@@ -1,0 +1,256 @@
+"""The settings of `align` and `track`: `TrackConfig` and the names it accepts.
+
+Why a module of its own: `align`, `track`, the registration stages they
+compile (`jaxpso._src.register`, the gradient baselines) and the command
+line all read one `TrackConfig`, and `track` should not reach it through
+`align`; neither of them is imported here.  `TrackConfig` splits its
+settings in two: the few `statics` that shape a compiled program (and key
+it, `jaxpso._src.programs`) and the runtime `knobs` that reach the program
+as data, so that changing them never recompiles.  The measured reasons for
+its defaults are in benchmarks/README.md (TrackConfig's defaults).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import math
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxpso._src import atlas
+from jaxpso._src import baselines
+from jaxpso._src import checks
+from jaxpso._src import problem as problems
+from jaxpso._src import pso
+from jaxpso._src import template as templates
+
+SIMILARITIES = ("mi", "ncc", "ssd")
+"""Names accepted by `TrackConfig.similarity`."""
+MOTIONS = ("homography", "plane")
+"""Names accepted by `TrackConfig.motion`."""
+DOFS = (2, 4, 6)
+"""Values accepted by `TrackConfig.dof` (motion "plane")."""
+
+# `TrackConfig.levels=None`: the coarsest level keeps the template's shorter
+# side at least COARSEST_PX pixels, with at most AUTO_LEVELS levels.
+COARSEST_PX, AUTO_LEVELS = 12, atlas.MAX_LEVELS
+
+# `TrackConfig.lost_quality=None`: the quality below which a frame is lost.
+LOST_QUALITY = {"mi": 0.65, "ncc": 0.8, "ssd": 0.5}
+
+
+@dataclasses.dataclass(frozen=True)
+class TrackConfig:
+  """Settings of `align` and `track`.
+
+  Only method, similarity, motion, dof, bins, swarm_size, variant,
+  topology and resolution shape the compiled programs (`statics`); every other setting
+  reaches them as data (`knobs`), so changing it never recompiles.
+
+  Attributes:
+    method (str): "pso" (default: the swarm, then Gauss–Newton) or a gradient
+      baseline of `jaxpso.baselines` ("fa", "fc", "ic", "esm", "ha", "adam",
+      "lbfgs", "ecc"; `jaxpso.METHODS`), which starts from the start alone,
+      runs at most `max_iterations` per pyramid level and has no retry or
+      recovery search.
+    similarity (str): "mi" (default), "ncc" or "ssd".
+    motion (str): "homography" (8 corner offsets) or "plane" (plane-induced, `dof`).
+    dof (int): pose parameters of motion "plane": 2 (tx, ty), 4 (+ tz, wz) or 6.
+    bins (int): histogram bins of MI, at least 4.  16, not 8: with 8, small
+      motions converged less often (benchmarks/README.md, TrackConfig's
+      defaults).
+    swarm_size (int): particles of the swarm.
+    max_iterations (int): PSO iterations at most (a baseline's per level).
+    patience (int | None): PSO stagnation stop (None disables).
+    variant (str): PSO variant (`jaxpso.pso.VARIANTS`).
+    topology (str): PSO topology (`jaxpso.pso.TOPOLOGIES`).
+    search_radius (float): half-width, in full-resolution pixels of corner
+      motion, of the box searched in every motion parameter around the start.
+    levels (int | None): pyramid levels (at most `AUTO_LEVELS`); the swarm
+      searches the coarsest.  None (the default): as many as keep the
+      template's shorter side at least `COARSEST_PX` pixels on the coarsest
+      level, at most `AUTO_LEVELS` (`for_template`): 4 for a 100×100
+      template, 3 for 48×48.  Small templates get fewer levels: on 4, a
+      48×48 template came out far off on a translating clip
+      (benchmarks/README.md, TrackConfig's defaults).
+    refine_steps (int): Gauss–Newton (Levenberg–Marquardt) steps per pyramid
+      level after the swarm (0 disables the refinement).
+    pixels (float): fraction in (0, 1] of the full-resolution template's
+      pixels the refinement uses there, those with the largest gradient
+      magnitude (at least 256 or all of them, at most `resolution`); 1 uses
+      every pixel.  The coarser levels and the swarm always use every pixel:
+      selecting there too made the refinement from the start converge less
+      often (benchmarks/README.md, TrackConfig's defaults).
+    accept_quality (float | None): the start refined by Gauss–Newton alone
+      is the result, and the swarm is skipped, when its `quality` reaches
+      this; None always runs the swarm.  `track` also accepts a start within
+      0.02 of the quality of the region's last searched match (if that was
+      ≥ 0.8): noise and blur lower the right alignment's quality too, and the
+      swarm should not run on every frame for it (benchmarks/video.py).
+      `align` refines a start that falls short once more from the coarsest
+      level before it runs the swarm, which then runs in far fewer trials
+      (benchmarks/README.md, TrackConfig's defaults).
+    resolution (int | None): points each of the template's sets holds at
+      most (a pixel budget; static).  A template level with more keeps those
+      of largest gradient, and the full-resolution loss and `quality` a
+      regular subsample (every s-th row and column), so a region of any size
+      costs at most this many points per set.  None (the default):
+      `template.RESOLUTION` (2 560, about 50×50; the trade-off is measured
+      in benchmarks/README.md, resolution).  At least 64 (8×8) and at most
+      the template's pixels.
+    min_valid (float): fraction of template pixels that must land in the image.
+    predict (bool): `track` starts each frame from a prediction carrying half
+      the last inter-frame motion (or from the previous estimate, whichever
+      scores better).  Half, not all: with all of it a plane pose's weakly
+      constrained rotation/translation error grows by itself
+      (benchmarks/README.md, tracking).  Off by default: it changes nothing
+      on the synthetic sequences.
+    lost_quality (float | None): `track` declares a frame lost when its
+      `quality` stays below this after the recovery search
+      (`lost_threshold`).  None (the default): `LOST_QUALITY` of the
+      similarity, above the wrong matches measured and below every correct
+      frame (benchmarks/README.md, TrackConfig's defaults).
+    retry_quality (float): `align` runs a second search (`recovery_scale`
+      swarms of other seeds, each `recovery_scale` × the iterations, same
+      box, one pyramid level finer) when the quality of its first result is
+      below this and the swarm's result and the start's refinement disagree,
+      and keeps the better result.  One level finer converged more often at
+      large motions, and the agreement test spares correct alignments of a
+      noisy image the retry's time (benchmarks/README.md, TrackConfig's
+      defaults).
+    recovery_scale (int): `track`'s recovery search has this many times the
+      radius and iterations of the normal search, and as many swarms; its
+      swarm searches the template's 2-D translation only, and Gauss–Newton
+      the full motion from its best: over every motion parameter in the wide
+      box the swarm seldom found a region that had moved while hidden
+      (benchmarks/README.md, TrackConfig's defaults).
+  """
+  method: str = "pso"
+  similarity: str = "mi"
+  motion: str = "homography"
+  dof: int = 6
+  bins: int = 16
+  swarm_size: int = 32
+  max_iterations: int = 40
+  patience: int | None = 10
+  variant: str = "constriction"
+  topology: str = "von_neumann"
+  search_radius: float = 32.0
+  levels: int | None = None
+  refine_steps: int = 10
+  pixels: float = 0.25
+  accept_quality: float | None = 0.95
+  resolution: int | None = None
+  min_valid: float = 0.5
+  predict: bool = False
+  lost_quality: float | None = None
+  retry_quality: float = 0.95
+  recovery_scale: int = 3
+
+  def __post_init__(self):
+    if self.similarity not in SIMILARITIES:
+      raise ValueError(f"TrackConfig.similarity must be one of {SIMILARITIES}, got {self.similarity!r}")
+    if self.motion not in MOTIONS:
+      raise ValueError(f"TrackConfig.motion must be one of {MOTIONS}, got {self.motion!r}")
+    if self.method not in baselines.METHODS:
+      raise ValueError(f"TrackConfig.method must be one of {baselines.METHODS}, got {self.method!r}")
+    baselines.check_supported(self.method, self.motion, self.similarity)
+    if self.dof not in DOFS or isinstance(self.dof, bool):
+      raise ValueError(f"TrackConfig.dof must be one of {DOFS}, got {self.dof!r}")
+    for name in ("swarm_size", "max_iterations", "recovery_scale"):
+      checks.check_int(getattr(self, name), f"TrackConfig.{name}", 1)
+    if self.levels is not None:
+      checks.check_int(self.levels, "TrackConfig.levels", 1)
+      if self.levels > AUTO_LEVELS:
+        raise ValueError(f"TrackConfig.levels must be at most {AUTO_LEVELS}, got {self.levels!r}")
+    checks.check_int(self.bins, "TrackConfig.bins", 4)  # the B-spline kernel spans 4 bins
+    checks.check_int(self.refine_steps, "TrackConfig.refine_steps", 0)
+    if not 0 < checks.check_real(self.search_radius, "TrackConfig.search_radius") < math.inf:
+      raise ValueError(
+          f"TrackConfig.search_radius must be finite and > 0, got {self.search_radius!r}")
+    if not 0.0 < checks.check_real(self.pixels, "TrackConfig.pixels") <= 1.0:
+      raise ValueError(f"TrackConfig.pixels must be in (0, 1], got {self.pixels!r}")
+    if self.resolution is not None:
+      checks.check_int(self.resolution, "TrackConfig.resolution", templates.MIN_RESOLUTION)
+    if not 0.0 < checks.check_real(self.min_valid, "TrackConfig.min_valid") <= 1.0:
+      raise ValueError(f"TrackConfig.min_valid must be in (0, 1], got {self.min_valid!r}")
+    for name in ("lost_quality", "retry_quality", "accept_quality"):
+      value = getattr(self, name)
+      if value is not None and not checks.check_real(value, f"TrackConfig.{name}") <= 1.0:
+        raise ValueError(f"TrackConfig.{name} must be <= 1, got {value!r}")
+    if not isinstance(self.predict, bool):
+      raise TypeError(f"TrackConfig.predict must be a bool, got {self.predict!r}")
+    self.pso_config()  # validates the PSO settings
+
+  @property
+  def lost_threshold(self) -> float:
+    """`lost_quality`, or the similarity's `LOST_QUALITY` when it is None."""
+    return LOST_QUALITY[self.similarity] if self.lost_quality is None else self.lost_quality
+
+  def for_template(self, shape) -> "TrackConfig":
+    """This config with `levels` chosen for a template of `shape` (h, w) when it is None."""
+    return self if self.levels is not None else _with_levels(self, tuple(shape))
+
+  def pso_config(self) -> pso.PSOConfig:
+    """The swarm's settings (batched loss over the whole swarm)."""
+    return pso.PSOConfig(swarm_size=self.swarm_size, variant=self.variant,
+                         topology=self.topology, max_iterations=self.max_iterations,
+                         patience=self.patience, batched=True)
+
+  def statics(self) -> "TrackConfig":
+    """The settings that shape the compiled programs, the others at their defaults (a program's key)."""
+    return _statics(self)
+
+  def knobs(self) -> problems.Knobs:
+    """The runtime settings as `problem.Knobs` of device scalars (made once per config)."""
+    return _knobs(self)
+
+  def host_knobs(self) -> problems.Knobs:
+    """`knobs` as NumPy scalars."""
+    off = np.float32(np.inf)
+    return problems.Knobs(
+        search_radius=np.float32(self.search_radius),
+        max_iterations=np.int32(self.max_iterations),
+        patience=np.int32(2**31 - 1 if self.patience is None else self.patience),
+        refine_steps=np.int32(self.refine_steps),
+        accept_quality=off if self.accept_quality is None else np.float32(self.accept_quality),
+        retry_quality=np.float32(self.retry_quality),
+        lost_quality=np.float32(self.lost_threshold), min_valid=np.float32(self.min_valid),
+        recovery_scale=np.int32(self.recovery_scale), predict=np.bool_(self.predict))
+
+
+@functools.lru_cache(maxsize=256)
+def _knobs(config: TrackConfig) -> problems.Knobs:
+  return jax.tree.map(jnp.asarray, config.host_knobs())
+
+
+_RUNTIME = ("search_radius", "max_iterations", "patience", "refine_steps", "accept_quality",
+            "retry_quality", "lost_quality", "min_valid", "recovery_scale", "predict", "levels",
+            "pixels")
+
+
+@functools.lru_cache(maxsize=256)
+def _statics(config: TrackConfig) -> TrackConfig:
+  defaults = TrackConfig()
+  config = dataclasses.replace(config, resolution=config.resolution or templates.RESOLUTION)
+  if config.method != "pso":  # a baseline's loops are unrolled per level
+    return dataclasses.replace(config, **{k: getattr(defaults, k) for k in _RUNTIME
+                                          if k not in ("levels", "max_iterations", "min_valid")})
+  return dataclasses.replace(config, **{k: getattr(defaults, k) for k in _RUNTIME})
+
+
+@functools.lru_cache(maxsize=64)
+def _with_levels(config: TrackConfig, shape: tuple) -> TrackConfig:
+  """`TrackConfig.for_template`, cached (replace re-validates the config: 0.1 ms per call)."""
+  levels = 1
+  while levels < AUTO_LEVELS and min(shape) / 2 ** levels >= COARSEST_PX:
+    levels += 1
+  return dataclasses.replace(config, levels=levels)
+
+
+def score_sign(config: TrackConfig) -> float:
+  """The sign that turns a loss into the similarity's score (SSD is reported as the error)."""
+  return 1.0 if config.similarity == "ssd" else -1.0
