@@ -10,16 +10,16 @@ score per frame and the template centre's trajectory.  OpenCV and matplotlib
 are imported only when these functions run.
 """
 
+from jaxpso._src.results import WITHIN_PX
+from jaxpso._src.results import corner_errors
+from jaxpso._src.results import plot_results
+from jaxpso._src.results import summarize
+from jaxpso._src.results import write_results
 from jaxpso._src.video import IMAGE_EXTENSIONS
 from jaxpso._src.video import STATUS_COLORS
 from jaxpso._src.video import VIDEO_CODECS
-from jaxpso._src.video import WITHIN_PX
-from jaxpso._src.video import corner_errors
 from jaxpso._src.video import draw_overlay
-from jaxpso._src.video import plot_results
 from jaxpso._src.video import read_frames
-from jaxpso._src.video import summarize
-from jaxpso._src.video import write_results
 from jaxpso._src.video import write_video
 
 __all__ = ("IMAGE_EXTENSIONS", "STATUS_COLORS", "VIDEO_CODECS", "WITHIN_PX", "corner_errors",

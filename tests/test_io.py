@@ -189,8 +189,8 @@ def _result():
 
 def test_status_names_match_the_tracker():
   assert io.STATUS_COLORS and len(io.STATUS_COLORS) == len(jaxpso.TrackStatus)
-  from jaxpso._src import video
-  assert video.STATUS_NAMES == tuple(s.name for s in sorted(jaxpso.TrackStatus))
+  from jaxpso._src import results
+  assert results.STATUS_NAMES == tuple(s.name for s in sorted(jaxpso.TrackStatus))
 
 
 def test_results_csv_and_json_with_truth(tmp_path):

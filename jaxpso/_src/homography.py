@@ -232,8 +232,8 @@ def apply_to_points(h, points) -> tuple[jax.Array, jax.Array]:
 def _apply(h: jax.Array, points: jax.Array) -> tuple[jax.Array, jax.Array]:
   """`apply_to_points` without input validation."""
   # Multiply-adds, not a (N, 3) × (3, 3) matmul: batched, XLA's CPU backend
-  # ran the matmul as a library call, 24 ms of a 64-region frame step's
-  # 128 ms against 2 ms now (profiled, benchmarks/batch.py's regions).
+  # ran the matmul as a slow library call (benchmarks/README.md,
+  # implementation choices).
   x, y = points[..., 0], points[..., 1]
 
   def row(i):

@@ -25,9 +25,8 @@ function) or defined inside a function stays in memory only.
 
 Compiler options: XLA's defaults.  An earlier tracker turned XLA:CPU's
 YNNPACK dot fusions off (batched MI histograms ran slower in them); the
-point-set registration's products are faster with them (one region: 3.5–3.8
-against 4.6–4.9 ms per frame; 64 regions: 235 against 210 templates × frames
-per second; benchmarks/README.md, cold start).
+point-set registration's products are faster with them (benchmarks/README.md,
+implementation choices).
 """
 
 from __future__ import annotations

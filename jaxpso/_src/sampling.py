@@ -7,8 +7,8 @@ homographies in one call, so a swarm of candidate motions is evaluated at once.
 
 Speed: the four bilinear neighbours of every image pixel are packed into one
 (H-1)·(W-1) × 4 table, so each sample is a single 4-wide gather instead of four
-scalar gathers (measured 1.4× faster for the full swarm evaluation on the CPU;
-see benchmarks/similarity.py).
+scalar gathers, faster for the full swarm evaluation on the CPU
+(benchmarks/README.md, implementation choices).
 """
 
 from __future__ import annotations
@@ -212,8 +212,8 @@ def _blur_decimate(image, axis: int):
   """The 5-tap binomial filter along `axis`, evaluated at the even positions only.
 
   Strided slices of the padded image: filtering every position and then
-  dropping the odd ones, with a transpose for the columns, took 3.5× as long
-  on the CPU (0.80 against 0.23 ms for a 4-level pyramid of 320×320).
+  dropping the odd ones, with a transpose for the columns, was several times
+  slower on the CPU (benchmarks/README.md, implementation choices).
   """
   pad = [(0, 0), (0, 0)]
   pad[axis] = (2, 2)
