@@ -1,4 +1,4 @@
-"""Tests for image sampling and the Gaussian pyramid in the public `jaxpso.warp`.
+"""Tests for `jaxpso.warp` (3 of 3): sampling and the pyramid, `jaxpso._src.sampling`.
 
 Expected values come from OpenCV (`cv2.warpPerspective`, `cv2.pyrDown`) and
 from NumPy re-implementations of the projection and bilinear sampling written

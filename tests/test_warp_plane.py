@@ -1,4 +1,4 @@
-"""Tests for jaxpso._src.plane.
+"""Tests for `jaxpso.warp` (2 of 3): the plane-induced model and poses, `jaxpso._src.plane`.
 
 Compilation dominates the runtime, so the tests share a few jitted functions
 and reuse the same input shapes.

@@ -1,4 +1,4 @@
-"""Tests for jaxpso._src.homography.
+"""Tests for `jaxpso.warp` (1 of 3): the homography algebra, `jaxpso._src.homography`.
 
 Compilation dominates the runtime, so the tests share a few jitted functions
 and reuse the same input shapes.
