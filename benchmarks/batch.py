@@ -11,7 +11,7 @@ for R = 1), and against the same R regions tracked one at a time (each
 region alone, best of `--repeats`, the times summed).  Regions differ: a
 low-texture one runs the swarm on many frames, alone as in a batch, so
 region 0 alone is not the batch's per-template cost.  The swarm runs only
-for the regions that need it (`align.where_needed`); the table gives the
+for the regions that need it (`batching.where_needed`); the table gives the
 fraction of frames on which any region's swarm ran and the fraction of
 region-frames, and the status's precision: region-frames not LOST but more
 than 5 px off, and region-frames within 5 px reported LOST.

@@ -77,7 +77,7 @@ def track_rows(resolutions, frames: int) -> list[dict]:
           start = time.perf_counter()
           result = jaxpso.track(kept, box, config=config)
           ms = 1e3 * (time.perf_counter() - start) / (len(kept) - 1)
-          errors = video.corner_errors(result.corners, kept_truth)
+          errors = jaxpso.io.corner_errors(result.corners, kept_truth)
           rows.append({"clip": name, "stride": stride, "similarity": similarity,
                        "resolution": resolution, "frames": int(errors.size),
                        "p_at_5": float(np.mean(errors <= video.GOOD_PX)),

@@ -129,11 +129,6 @@ def make_clip(name: str, frames: int, seed: int):
   return out, corners, box
 
 
-def corner_errors(found: np.ndarray, truth: np.ndarray) -> np.ndarray:
-  """(T,) RMS over the 4 corners of (T, 4, 2) estimates against the truth."""
-  return np.sqrt(np.mean(np.sum((found - truth) ** 2, -1), -1))
-
-
 def track_ecc(frames: np.ndarray, box) -> np.ndarray:
   """(T, 4, 2) corners from OpenCV's ECC chained frame to frame."""
   x, y, w, h = box
@@ -173,16 +168,17 @@ def measure(clips, frames: int) -> list[dict]:
       start = time.perf_counter()
       ecc = track_ecc(kept, box)
       ecc_seconds = (time.perf_counter() - start) / (len(kept) - 1)
-      rows.append(_row(name, stride, "OpenCV ECC (chained)", corner_errors(ecc, kept_truth),
-                       ecc_seconds))
+      rows.append(_row(name, stride, "OpenCV ECC (chained)",
+                       jaxpso.io.corner_errors(ecc, kept_truth), ecc_seconds))
       for tracker, fields in TRACKERS.items():
         config = jaxpso.TrackConfig(**fields)
         jaxpso.track(kept, box, config=config)  # compiles (or loads) and warms up
         start = time.perf_counter()
         result = jaxpso.track(kept, box, config=config)
         seconds = (time.perf_counter() - start) / (len(kept) - 1)
-        rows.append(_row(name, stride, tracker, corner_errors(result.corners, kept_truth),
-                         seconds, result.status))
+        rows.append(_row(name, stride, tracker,
+                         jaxpso.io.corner_errors(result.corners, kept_truth), seconds,
+                         result.status))
       print({k: rows[-1][k] for k in ("clip", "stride", "p_at_5", "ms_per_frame")}, flush=True)
   return rows
 

@@ -33,6 +33,7 @@ import jaxpso
 from jaxpso import io
 from jaxpso import synthetic
 from jaxpso._src import config as configs
+from jaxpso._src import template as templates
 
 _FPS = 25.0
 
@@ -72,7 +73,7 @@ def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
                      help="pyramid levels (default: by the template's size, at most"
                      f" {configs.AUTO_LEVELS})")
   group.add_argument("--resolution", type=int,
-                     help="points per template set at most (default 2560, about 50x50)")
+                     help=f"points per template set at most (default {templates.RESOLUTION})")
   group.add_argument("--refine-steps", type=int, dest="refine_steps",
                      help=f"Gauss–Newton steps per level (default {_default('refine_steps')})")
   group.add_argument("--seed", type=int, default=0, help="random seed (default 0)")

@@ -72,8 +72,13 @@ class AlignResult(NamedTuple):
   pose: jax.Array | None = None
 
 
-def _result(found: problems.Candidate, offsets, pose, config) -> AlignResult:
-  """`AlignResult` of a batch's best candidates, homographies moved from window to image pixels."""
+def _result(found: problems.Candidate, bases, geometry, offsets, config) -> AlignResult:
+  """`AlignResult` of a batch's best candidates, homographies moved from window to image pixels
+  (and for motion "plane", `geometry` given, the pose from the base poses `bases`)."""
+  pose = None
+  if geometry is not None:
+    pose = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(
+        found.u, bases[:, 0], geometry)
   to_image = jax.vmap(lambda o: homography.translation(o[0], o[1]))(offsets)
   finite = jnp.isfinite(found.loss)
   return AlignResult(
@@ -96,11 +101,7 @@ def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, s
   contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
                            geometry, seeds)
   found = register.run(contexts, knobs, "align", config).best
-  pose = None
-  if geometry is not None:
-    pose = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(
-        found.u, bases[:, 0], geometry)
-  return _result(found, offsets, pose, config)
+  return _result(found, bases, geometry, offsets, config)
 
 
 @functools.partial(programs.Program, static_argnames=("config",))
@@ -111,11 +112,7 @@ def _align_baseline(images: atlas.Atlas, pyramids: list, prepared: templates.Tem
   contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
                            geometry, seeds)
   found = batching.each(lambda c, p: register.baseline(c, p, knobs, config), contexts, pyramids)
-  pose = None
-  if geometry is not None:
-    pose = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(
-        found.u, bases[:, 0], geometry)
-  return _result(found, offsets, pose, config)
+  return _result(found, bases, geometry, offsets, config)
 
 
 def align(image, template, init_homography, *, config: TrackConfig = TrackConfig(),

@@ -288,18 +288,10 @@ def run(contexts: problems.Context, knobs: problems.Knobs, pipeline: str, config
 
 
 # ---------------------------------------------------------------- contexts
-def _full_set(template: templates.Template, resolution: int):
-  """(resolution, 2) points, (resolution,) values and mask of the `FULL` set, at once."""
-  offset, count = template.sets[templates.FULL]
-  points = jax.lax.dynamic_slice(template.points, (offset, 0), (resolution, 2))
-  values = jax.lax.dynamic_slice(template.values, (offset,), (resolution,))
-  return points, values, jnp.arange(resolution) < count
-
-
 def image_range(context: problems.Context, base, config) -> jax.Array:
   """(2,) MI binning range: the template's and the image's where base `base` puts it."""
-  points, _, inside = _full_set(context.template, config.resolution)
   problem = problems.Problem(context, None, config)
+  points, _, inside = problem._chunk(templates.FULL, 0, config.resolution)
   h = problem.homography(jnp.zeros(problem.dim, jnp.float32), base)
   values, valid = atlas.level(context.image, 0).sample(h, points)
   lo, hi = measures.intensity_range(values, valid & inside)

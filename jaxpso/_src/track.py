@@ -121,7 +121,8 @@ def _damped(velocity):
 
 
 def _frame_seed(seed, frame):
-  return jnp.stack([seed[0], swarm_random._mix(seed[1] ^ swarm_random._mix(frame.astype(jnp.uint32)))])
+  mixed = swarm_random._mix(seed[1] ^ swarm_random._mix(frame.astype(jnp.uint32)))
+  return jnp.stack([seed[0], mixed])
 
 
 def _predict(contexts: problems.Context, knobs, config):
@@ -299,7 +300,8 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
   def name(r):
     return f"roi[{r}]" if batched else "roi"
 
-  regions = [track_inputs.template_geometry(roi, frame_shape, name(r)) for r, roi in enumerate(rois)]
+  regions = [track_inputs.template_geometry(roi, frame_shape, name(r))
+             for r, roi in enumerate(rois)]
   shapes = [shape for _, shape in regions]
   if config.method != "pso" and len(set(shapes)) > 1:
     raise ValueError(f"every region tracked by {config.method!r} must have one size, got"
@@ -311,7 +313,8 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
   checks.check_image_size(frame_shape, configs[int(np.argmax([c.levels for c in configs]))],
                           "frames[0]")
   pixels = [frame0[r if sequences else 0] for r in range(count)]
-  templates_ = [track_inputs.template(f, corners, shape) for f, (corners, shape) in zip(pixels, regions)]
+  templates_ = [track_inputs.template(f, corners, shape)
+                for f, (corners, shape) in zip(pixels, regions)]
   checks.check_texture(np.array([np.std(t) for t in templates_]),
                        lambda r: f"{name(r)} {rois[r]!r}")
   starts = _starts(regions)
