@@ -102,14 +102,17 @@ def take(tree, indices):
   return _mapped(lambda a: a[indices], tree)
 
 
-def _share() -> int:
-  """A batch of R runs its later stages on ceil(R / _share()) elements at a time (`where_needed`).
+def _capacity(size: int) -> int:
+  """Elements per round of `where_needed` for a batch of `size`.
 
-  32 on a CPU, where the work is compute-bound and an idle slot of a round
-  costs as much as a busy one (benchmarks/README.md, batch).  8 on
-  accelerators, whose slots run in parallel (not measured on a GPU).
+  1 on a CPU: a single element runs its loops and conditionals as such,
+  while under `vmap` (`each`) every loop runs to its slowest element as
+  selects and every conditional both branches, so one element at a time
+  was the fastest even when every element needed the search
+  (benchmarks/README.md, batch).  ceil(size / 8) on accelerators, whose
+  slots run in parallel (not measured on a GPU).
   """
-  return 32 if jax.default_backend() == "cpu" else 8
+  return 1 if jax.default_backend() == "cpu" else -(-size // 8)
 
 
 def where_needed(mask, compute: Callable, otherwise):
@@ -117,11 +120,11 @@ def where_needed(mask, compute: Callable, otherwise):
 
   `compute(indices)` gets (C,) element indices and returns those elements'
   results (leading C).  Only the elements that need it are computed, C =
-  ceil(R / _share()) at a time in a `lax.while_loop` of as many rounds as
+  `_capacity(R)` at a time in a `lax.while_loop` of as many rounds as
   needed (none when no element does).
   """
   size = mask.shape[0]
-  capacity = -(-size // _share())
+  capacity = _capacity(size)
   padded = -(-size // capacity) * capacity
   needed = jnp.sum(mask)
   # The needing elements first; every other slot is the out-of-range index `size`.

@@ -55,26 +55,30 @@ def empty(measure: Measure, lead: tuple, shift_a=None, shift_b=None):
   return jnp.zeros(lead + (2,), jnp.float32)
 
 
-def bin_weights(values, bins: int, value_range):
-  """(…, bins, c) cubic B-spline weights of (…, c) values over value_range (2,), bin-major."""
+def bin_weights(values, bins: int, value_range, bins_last: bool = False):
+  """(…, bins, c) cubic B-spline weights of (…, c) values over value_range (2,), bin-major.
+
+  With `bins_last`, (…, c, bins): computed in that layout, not transposed
+  (a transpose became a copy of the whole array).
+  """
   lo, hi = value_range[0], value_range[1]
   s = 1.0 + (jnp.clip(values, lo, hi) - lo) * ((bins - 3) / (hi - lo))
-  return similarity._bspline3(s[..., None, :] - jnp.arange(bins, dtype=values.dtype)[:, None])
+  centres = jnp.arange(bins, dtype=values.dtype)
+  if bins_last:
+    return similarity._bspline3(s[..., :, None] - centres)
+  return similarity._bspline3(s[..., None, :] - centres[:, None])
 
 
-def add(measure: Measure, stats, a, b, mask, ranges: Ranges | None = None, a_bins=None,
-        b_bins=None):
+def add(measure: Measure, stats, a, b, mask, ranges: Ranges | None = None, a_bins=None):
   """`stats` plus the chunk's sums: template values a (c,), patches b (…, c), mask (…, c).
 
-  For "mi", `a_bins` (c, bins) and `b_bins` (…, bins, c) are a's and b's
-  `bin_weights` where already computed (a's transposed: the CPU's product of
-  (k, c) by (c, k') is the fast one).
+  For "mi", `a_bins` (c, bins) are a's `bin_weights` where already computed
+  (transposed: the CPU's product of (k, c) by (c, k') is the fast one).
   """
   m = mask.astype(b.dtype)
   if measure.name == "mi":
-    wa = bin_weights(a, measure.bins, ranges.template).T if a_bins is None else a_bins
-    wb = bin_weights(b, measure.bins, ranges.image) if b_bins is None else b_bins
-    wb = wb * m[..., None, :]
+    wa = bin_weights(a, measure.bins, ranges.template, True) if a_bins is None else a_bins
+    wb = bin_weights(b, measure.bins, ranges.image) * m[..., None, :]
     # Materialised: fused into the product, the weights were recomputed for
     # every one of its outputs.
     wa, wb = jax.lax.optimization_barrier((wa, wb))
@@ -88,6 +92,24 @@ def add(measure: Measure, stats, a, b, mask, ranges: Ranges | None = None, a_bin
     return sums + chunk, shift_a, shift_b
   d = (a - b) * m
   return stats + jnp.stack([jnp.sum(m, -1), jnp.sum(d * d, -1)], axis=-1)
+
+
+def add_with_own(stats, own, a_bins, b, mask, measure: Measure, image_range):
+  """MI's joint histograms of a chunk against the template and against itself, in one product.
+
+  a_bins (c, bins): the template values' `bin_weights`, transposed; b (c,)
+  the patch, binned over image_range (2,); mask (c,).  Returns `stats` and
+  `own` plus the chunk's Σm β(a) β(b)ᵀ and Σm β(b) β(b)ᵀ: one (bins, c) by
+  (c, 2·bins) product took half the time of the two (benchmarks/README.md,
+  implementation choices).
+  """
+  wb = bin_weights(b, measure.bins, image_range)
+  right = jnp.concatenate([a_bins, bin_weights(b, measure.bins, image_range, True)], axis=-1)
+  left, right = jax.lax.optimization_barrier((wb * mask.astype(b.dtype)[None], right))
+  # The barrier keeps XLA from folding the transpose into the product (a
+  # transposed operand made it several times slower).
+  both = jax.lax.optimization_barrier(left @ right)
+  return stats + both[:, :measure.bins].T, own + both[:, measure.bins:]
 
 
 def valid_count(measure: Measure, stats):

@@ -181,7 +181,7 @@ class Problem:
       return None
     values = jax.lax.dynamic_slice(self.template.values, (self.template.sets[index, 0],),
                                    (templates.slot(self.config.resolution),))
-    return measures.bin_weights(values, self.config.bins, self.context.template_range).T
+    return measures.bin_weights(values, self.config.bins, self.context.template_range, True)
 
   def _scores(self, h, level, index, chunk: int, lead: tuple, ranges, bins):
     """Similarity statistics of set `index` sampled at `level` through (lead…, 3, 3) level homographies h.
@@ -366,11 +366,8 @@ class Problem:
       # The patch against itself too, both sides binned over the image's range.
       # The template's bins per chunk: only the chunks in use (a small
       # template fills a fraction of the set's capacity).
-      weights = measures.bin_weights(template, self.config.bins, ranges.template).T
-      own_bins = measures.bin_weights(patch, self.config.bins, ranges.image)
-      stats = measures.add(self.measure, stats, template, patch, valid, ranges, weights, own_bins)
-      own = measures.add(self.measure, own, patch, patch, valid, None, own_bins.T, own_bins)
-      return stats, own
+      weights = measures.bin_weights(template, self.config.bins, ranges.template, True)
+      return measures.add_with_own(stats, own, weights, patch, valid, self.measure, ranges.image)
 
     empty = self._empty(h, 0, templates.FULL, ())
     stats, own = measures.over_chunks(count, self.config.resolution, body,
