@@ -109,8 +109,9 @@ def _capacity(size: int) -> int:
   while under `vmap` (`each`) every loop runs to its slowest element as
   selects and every conditional both branches, so one element at a time
   was the fastest even when every element needed the search
-  (benchmarks/README.md, batch).  ceil(size / 8) on accelerators, whose
-  slots run in parallel (not measured on a GPU).
+  (benchmarks/README.md, runtime before and after issue 17).
+  ceil(size / 8) on accelerators, whose slots run in parallel (not
+  measured on a GPU).
   """
   return 1 if jax.default_backend() == "cpu" else -(-size // 8)
 

@@ -72,8 +72,8 @@ def bin_weights(values, bins: int, value_range, bins_last: bool = False):
 def add(measure: Measure, stats, a, b, mask, ranges: Ranges | None = None, a_bins=None):
   """`stats` plus the chunk's sums: template values a (c,), patches b (…, c), mask (…, c).
 
-  For "mi", `a_bins` (c, bins) are a's `bin_weights` where already computed
-  (transposed: the CPU's product of (k, c) by (c, k') is the fast one).
+  For "mi", `a_bins` (c, bins) are a's `bin_weights` (bins last: the CPU's
+  product of (k, c) by (c, k') is the fast one) where already computed.
   """
   m = mask.astype(b.dtype)
   if measure.name == "mi":
@@ -97,11 +97,11 @@ def add(measure: Measure, stats, a, b, mask, ranges: Ranges | None = None, a_bin
 def add_with_own(stats, own, a_bins, b, mask, measure: Measure, image_range):
   """MI's joint histograms of a chunk against the template and against itself, in one product.
 
-  a_bins (c, bins): the template values' `bin_weights`, transposed; b (c,)
+  a_bins (c, bins): the template values' `bin_weights`, bins last; b (c,)
   the patch, binned over image_range (2,); mask (c,).  Returns `stats` and
   `own` plus the chunk's Σm β(a) β(b)ᵀ and Σm β(b) β(b)ᵀ: one (bins, c) by
   (c, 2·bins) product took half the time of the two (benchmarks/README.md,
-  implementation choices).
+  runtime before and after issue 17).
   """
   wb = bin_weights(b, measure.bins, image_range)
   right = jnp.concatenate([a_bins, bin_weights(b, measure.bins, image_range, True)], axis=-1)
