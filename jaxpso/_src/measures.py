@@ -103,6 +103,8 @@ def add_with_own(stats, own, a_bins, b, mask, measure: Measure, image_range):
   (c, 2·bins) product took half the time of the two (benchmarks/README.md,
   runtime before and after issue 17).
   """
+  # b is binned in both layouts: taking wb.T instead was slower (a layout
+  # copy; benchmarks/README.md, runtime before and after issue 17).
   wb = bin_weights(b, measure.bins, image_range)
   right = jnp.concatenate([a_bins, bin_weights(b, measure.bins, image_range, True)], axis=-1)
   left, right = jax.lax.optimization_barrier((wb * mask.astype(b.dtype)[None], right))
