@@ -88,14 +88,9 @@ def checked_plane_geometry(camera, plane_normal, frame_shape, h0, shape, dof):
     frame_shape: (H, W) of the frame the template was cut from.
     h0: (3, 3) template → that frame.  shape: template (h, w).  dof: 2, 4 or 6.
   """
-  k = (np.asarray(plane.default_camera(frame_shape), np.float64) if camera is None
-       else np.asarray(camera, np.float64))
-  if k.shape != (3, 3) or not np.all(np.isfinite(k)) or abs(np.linalg.det(k)) < 1e-12:
-    raise ValueError(f"camera must be a finite, invertible 3×3 matrix, got {camera!r}")
-  n = np.array([0.0, 0.0, 1.0]) if plane_normal is None else np.asarray(plane_normal, np.float64)
-  if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
-    raise ValueError(f"plane_normal must be a finite non-zero 3-vector, got {plane_normal!r}")
-  n = n / np.linalg.norm(n)
+  k = plane.checked_camera(camera, frame_shape)
+  n = plane.checked_normal((0.0, 0.0, 1.0) if plane_normal is None else plane_normal,
+                           "plane_normal")
   centre = np.asarray(h0, np.float64) @ np.array([(shape[1] - 1) / 2, (shape[0] - 1) / 2, 1.0])
   ray = np.linalg.solve(k, centre / centre[2])
   if not n @ ray > 1e-6:

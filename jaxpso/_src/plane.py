@@ -246,6 +246,27 @@ def default_camera(shape) -> jax.Array:
   return jnp.asarray(k, dtype=float)
 
 
+def checked_camera(camera, frame_shape) -> np.ndarray:
+  """(3, 3) float64 intrinsics given by the user, `default_camera(frame_shape)` for None.
+
+  Raises ValueError unless finite and invertible (host-side, for the entry
+  points' arguments).
+  """
+  k = (np.asarray(default_camera(frame_shape), np.float64) if camera is None
+       else np.asarray(camera, np.float64))
+  if k.shape != (3, 3) or not np.all(np.isfinite(k)) or abs(np.linalg.det(k)) < 1e-12:
+    raise ValueError(f"camera must be a finite, invertible 3×3 matrix, got {camera!r}")
+  return k
+
+
+def checked_normal(normal, name: str) -> np.ndarray:
+  """(3,) float64 unit normal from the user's argument `name`; ValueError unless finite and non-zero."""
+  n = np.asarray(normal, np.float64)
+  if n.shape != (3,) or not np.all(np.isfinite(n)) or np.linalg.norm(n) < 1e-9:
+    raise ValueError(f"{name} must be a finite non-zero 3-vector, got {normal!r}")
+  return n / np.linalg.norm(n)
+
+
 def _unit_normal(normal) -> jax.Array:
   """Validates a non-zero normal (..., 3) and scales it to unit length."""
   normal = as_checked(normal, (3,), "normal", "(..., 3)")

@@ -159,14 +159,8 @@ def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320
   h, w = checks.check_shape2d(roi_size, "roi_size")
   if h > height or w > width:
     raise ValueError(f"roi_size {roi_size} does not fit in frame_shape {frame_shape}")
-  camera = (np.asarray(plane.default_camera((height, width)), np.float64) if camera is None
-            else np.asarray(camera, np.float64))
-  if camera.shape != (3, 3) or not np.all(np.isfinite(camera)) or abs(np.linalg.det(camera)) < 1e-12:
-    raise ValueError(f"camera must be a finite, invertible 3×3 matrix, got {camera!r}")
-  normal = np.asarray(normal, np.float64)
-  if normal.shape != (3,) or not np.all(np.isfinite(normal)) or np.linalg.norm(normal) < 1e-9:
-    raise ValueError(f"normal must be a finite non-zero 3-vector, got {normal!r}")
-  normal = normal / np.linalg.norm(normal)
+  camera = plane.checked_camera(camera, (height, width))
+  normal = plane.checked_normal(normal, "normal")
   if not (math.isfinite(distance) and distance > 0):
     raise ValueError(f"distance must be > 0, got {distance!r}")
   jumps = tuple(int(j) for j in jumps)
