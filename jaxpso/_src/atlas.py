@@ -81,7 +81,8 @@ def build(image: np.ndarray, levels: int, size: int | None = None) -> Atlas:
   size = capacity(total) if size is None else size
   if total > size:
     raise ValueError(f"a pyramid of {total} values does not fit an atlas of {size}")
-  pixels = np.zeros(size, np.float32)
+  pixels = np.empty(size, np.float32)
+  pixels[total:] = 0.0
   table = np.zeros((MAX_LEVELS, 3), np.int32)
   offset = 0
   for index, level in enumerate(pyramid):
