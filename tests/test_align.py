@@ -120,6 +120,27 @@ def test_without_accept_quality_the_swarm_always_runs():
       np.testing.assert_array_equal(getattr(again, field), value, err_msg=field)
 
 
+def test_align_retries_where_the_retry_disagrees_with_the_best():
+  # A Baker–Matthews trial at σ 16 px (benchmarks/convergence.py's protocol):
+  # the search and the one retry both miss, and disagree; another retry
+  # with other seeds finds the alignment (TrackConfig.retries).
+  source = np.float32([[0, 0], [99, 0], [99, 99], [0, 99]])
+  start = cv2.getPerspectiveTransform(source, np.float32(
+      [[311.59, 313.96], [382.58, 282.79], [383.21, 399.66], [284.13, 426.93]]))
+  template = IMAGE[299:399, 292:392]
+
+  def error(config):
+    result = jaxpso.align(IMAGE, template, start, config=config)
+    mapped = cv2.perspectiveTransform(source[None], np.asarray(result.homography, np.float64))[0]
+    return float(np.max(np.linalg.norm(mapped - (source + [292, 299]), axis=1))), result
+
+  once, single = error(jaxpso.TrackConfig(retries=0))
+  again, retried = error(jaxpso.TrackConfig())
+  assert once > 5.0 and float(single.quality) < 0.95
+  assert again < 0.5 and float(retried.quality) > 0.99
+  assert int(retried.num_evaluations) > int(single.num_evaluations)
+
+
 def test_a_gradient_baseline_behind_align():
   config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "method": "ic", "similarity": "ssd"})
   errors = [_corner_error(jaxpso.align(IMAGE, TEMPLATE, _perturbed(seed, 2.0),

@@ -129,6 +129,7 @@ def test_align(call, error, argument, value):
     ("iterations-0", dict(max_iterations=0), ValueError, "max_iterations", "0"),
     ("patience-0", dict(patience=0), ValueError, "patience", "0"),
     ("refine-steps", dict(refine_steps=-1), ValueError, "refine_steps", "-1"),
+    ("retries", dict(retries=-1), ValueError, "retries", "-1"),
     ("radius-0", dict(search_radius=0.0), ValueError, "search_radius", "0.0"),
     ("radius-inf", dict(search_radius=math.inf), ValueError, "search_radius", "inf"),
     ("radius-none", dict(search_radius=None), TypeError, "search_radius", "None"),

@@ -121,6 +121,14 @@ class TrackConfig:
       large motions, and the agreement test spares correct alignments of a
       noisy image the retry's time (benchmarks/README.md, TrackConfig's
       defaults).
+    retries (int): `align` runs the retry again with other seeds, up to this
+      many more times, while its result stays below `retry_quality` and
+      disagrees (a corner over 1 px apart) with the best so far, and keeps
+      the lowest loss.  Two independent searches that agree confirm a
+      result whatever the image noise; where they disagree at least one is
+      wrong.  2 raised Baker–Matthews success at σ 8–16 by about 2 points
+      (4 by 3, for twice the slowest alignments' time); 0 is the single
+      retry (benchmarks/README.md, issue 18).
     recovery_scale (int): `track`'s recovery search has this many times the
       radius and iterations of the normal search, and as many swarms; its
       swarm searches the template's 2-D translation only, and Gauss–Newton
@@ -148,6 +156,7 @@ class TrackConfig:
   predict: bool = False
   lost_quality: float | None = None
   retry_quality: float = 0.95
+  retries: int = 2
   recovery_scale: int = 3
 
   def __post_init__(self):
@@ -168,6 +177,7 @@ class TrackConfig:
         raise ValueError(f"TrackConfig.levels must be at most {AUTO_LEVELS}, got {self.levels!r}")
     checks.check_int(self.bins, "TrackConfig.bins", 4)  # the B-spline kernel spans 4 bins
     checks.check_int(self.refine_steps, "TrackConfig.refine_steps", 0)
+    checks.check_int(self.retries, "TrackConfig.retries", 0)
     if not 0 < checks.check_real(self.search_radius, "TrackConfig.search_radius") < math.inf:
       raise ValueError(
           f"TrackConfig.search_radius must be finite and > 0, got {self.search_radius!r}")
@@ -217,7 +227,7 @@ class TrackConfig:
         patience=np.int32(2**31 - 1 if self.patience is None else self.patience),
         refine_steps=np.int32(self.refine_steps),
         accept_quality=off if self.accept_quality is None else np.float32(self.accept_quality),
-        retry_quality=np.float32(self.retry_quality),
+        retry_quality=np.float32(self.retry_quality), retries=np.int32(self.retries),
         lost_quality=np.float32(self.lost_threshold), min_valid=np.float32(self.min_valid),
         recovery_scale=np.int32(self.recovery_scale), predict=np.bool_(self.predict))
 
@@ -228,7 +238,7 @@ def _knobs(config: TrackConfig) -> problems.Knobs:
 
 
 _RUNTIME = ("search_radius", "max_iterations", "patience", "refine_steps", "accept_quality",
-            "retry_quality", "lost_quality", "min_valid", "recovery_scale", "predict", "levels",
+            "retry_quality", "retries", "lost_quality", "min_valid", "recovery_scale", "predict", "levels",
             "pixels")
 
 

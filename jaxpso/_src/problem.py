@@ -50,7 +50,7 @@ class Knobs(NamedTuple):
 
   Every field is a () array: search_radius, max_iterations, patience (a
   huge value when off), refine_steps, accept_quality (+inf when off),
-  retry_quality, lost_quality, min_valid, recovery_scale, predict (bool).
+  retry_quality, retries, lost_quality, min_valid, recovery_scale, predict (bool).
   """
   search_radius: jax.Array
   max_iterations: jax.Array
@@ -58,6 +58,7 @@ class Knobs(NamedTuple):
   refine_steps: jax.Array
   accept_quality: jax.Array
   retry_quality: jax.Array
+  retries: jax.Array
   lost_quality: jax.Array
   min_valid: jax.Array
   recovery_scale: jax.Array

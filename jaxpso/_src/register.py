@@ -136,12 +136,14 @@ class State(NamedTuple):
     anchor: `problem.Candidate` align: the start's refinement; track: the recovery's.
     recovered: (C,) bool: track's recovery ran.
     searched: (C,) bool: a swarm ran.
+    retries: (C,) int32 align's retries run.
   """
   stage: jax.Array
   best: problems.Candidate
   anchor: problems.Candidate
   recovered: jax.Array
   searched: jax.Array
+  retries: jax.Array
 
 
 def _column(stages, name: str, index):
@@ -170,7 +172,8 @@ def _pass(contexts: problems.Context, state: State, knobs: problems.Knobs, stage
     wide = _column(stages, "wide", stage)
     scale = jnp.where(wide, knobs.recovery_scale, 1)
     radius = knobs.search_radius * jnp.where(wide & _column(stages, "widen", stage), scale, 1)
-    seeds = contexts.seed ^ jnp.where(wide, jnp.uint32(_WIDE_SEED), jnp.uint32(0))[:, None]
+    stream = jnp.uint32(_WIDE_SEED) * (state.retries.astype(jnp.uint32) + 1)
+    seeds = contexts.seed ^ jnp.where(wide, stream, jnp.uint32(0))[:, None]
     needed = (state.stage < len(stages)) & _column(stages, "swarm", stage)
 
     def search(_):
@@ -204,14 +207,18 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
   gap = jax.vmap(corner_gap)(found.homography, state.anchor.homography, contexts.template.size)
   searched = better(found, state.anchor)._replace(confirmed=gap <= _AGREE_PX)
   settled = (searched.quality >= knobs.retry_quality) | searched.confirmed
+  retried = better(state.best, found)
+  gap = jax.vmap(corner_gap)(found.homography, state.best.homography, contexts.template.size)
+  again = ((stage == 3) & (retried.quality < knobs.retry_quality) & (gap > _AGREE_PX)
+           & (state.retries < knobs.retries))
   best = batching.select(starting, start._replace(confirmed=accepted),
-                         batching.select(stage == 2, searched, better(state.best, found)))
+                         batching.select(stage == 2, searched, retried))
   following = jnp.select(
       [stage == 0, stage == 1, stage == 2],
       [jnp.where(accepted, done, jnp.where(coarse_next, 1, 2)), jnp.where(accepted, done, 2),
-       jnp.where(settled, done, 3)], done)
+       jnp.where(settled, done, 3)], jnp.where(again, 3, done))
   return State(following, best, batching.select(starting, start, state.anchor),
-               state.recovered, state.searched | (stage >= 2))
+               state.recovered, state.searched | (stage >= 2), state.retries + (stage == 3))
 
 
 def _advance_track(state: State, found: problems.Candidate, contexts: problems.Context,
@@ -235,7 +242,8 @@ def _advance_track(state: State, found: problems.Candidate, contexts: problems.C
        jnp.where(searched.quality >= knobs.lost_quality, done, 2),
        jnp.where(accepted, done, 3)], done)
   return State(following, best, batching.select(stage == 2, found, state.anchor),
-               state.recovered | (stage == 2), state.searched | (stage == 1) | (stage == 3))
+               state.recovered | (stage == 2), state.searched | (stage == 1) | (stage == 3),
+               state.retries)
 
 
 PIPELINES = {"align": (ALIGN, _advance_align), "track": (TRACK, _advance_track)}
@@ -252,7 +260,7 @@ def _initial(count: int, config) -> State:
                             quality=jnp.full(count, -jnp.inf, jnp.float32),
                             confirmed=jnp.zeros(count, bool), base=zero, num_iterations=zero,
                             num_evaluations=zero)
-  return State(zero, none, none, jnp.zeros(count, bool), jnp.zeros(count, bool))
+  return State(zero, none, none, jnp.zeros(count, bool), jnp.zeros(count, bool), zero)
 
 
 def _loop(contexts: problems.Context, state: State, knobs: problems.Knobs, pipeline: str,
