@@ -88,6 +88,7 @@ CONDITIONS = {  # name → (label, image ↦ changed image, given the trial's ge
 }
 METHODS = {  # name → (label, TrackConfig fields, or None for OpenCV's ECC)
     "pso-mi": ("pso (MI)", {}),
+    "pso-mi-one-retry": ("pso (MI), retries=0", {"retries": 0}),
     "pso-ncc": ("pso (NCC)", {"similarity": "ncc"}),
     "pso-ssd": ("pso (SSD)", {"similarity": "ssd"}),
     "fa": ("fa (SSD)", {"method": "fa", "similarity": "ssd"}),
