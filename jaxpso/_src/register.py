@@ -122,9 +122,9 @@ class Stage:
 ALIGN = (Stage(), Stage(top=1), Stage(swarm=True, top=2),
          Stage(swarm=True, finer=True, wide=True, top=2))
 """`align`'s stages: the start, a coarser start, the search, the retry one level finer."""
-TRACK = (Stage(), Stage(swarm=True, top=2), Stage(base=1),
+TRACK = (Stage(), Stage(top=1), Stage(swarm=True, top=2), Stage(base=1),
          Stage(swarm=True, wide=True, widen=True, translation=True, top=2, base=1))
-"""`track`'s stages: the start, the search, then the recovery from the last good estimate."""
+"""`track`'s stages: the start, a coarser start, the search, then the recovery from the last good estimate."""
 
 
 class State(NamedTuple):
@@ -223,26 +223,29 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
 
 def _advance_track(state: State, found: problems.Candidate, contexts: problems.Context,
                    knobs: problems.Knobs) -> State:
-  """track's transitions: accepted start → done; else search; short of `lost_quality`: recovery."""
+  """track's transitions: accepted start → done; else coarser start, search; short of `lost_quality`: recovery."""
   stage, done = state.stage, len(TRACK)
   # Also accepted: within _REFERENCE_MARGIN of the quality the region's last
   # search reached (noise and blur lower the right alignment's quality too),
   # unless that was under _MIN_REFERENCE (low texture: too uncertain).
   reference = contexts.reference
-  accepted = ((found.quality >= knobs.accept_quality)
-              | ((reference >= _MIN_REFERENCE) & (found.quality >= reference - _REFERENCE_MARGIN)))
+  start = batching.select(stage == 0, found, better(state.best, found))
+  quality = jnp.where(stage <= 1, start.quality, found.quality)  # the starts', or the recovery's
+  accepted = ((quality >= knobs.accept_quality)
+              | ((reference >= _MIN_REFERENCE) & (quality >= reference - _REFERENCE_MARGIN)))
+  coarse_next = jnp.isfinite(knobs.accept_quality) & (contexts.template.levels > 2)
   searched = better(found, state.best)
   recovered = better(found, state.anchor)
-  best = batching.select(stage == 0, found, batching.select(stage == 1, searched, batching.select(
-      stage == 2, batching.select(accepted, better(state.best, found), state.best),
+  best = batching.select(stage <= 1, start, batching.select(stage == 2, searched, batching.select(
+      stage == 3, batching.select(accepted, better(state.best, found), state.best),
       better(state.best, recovered))))
   following = jnp.select(
-      [stage == 0, stage == 1, stage == 2],
-      [jnp.where(accepted, done, 1),
-       jnp.where(searched.quality >= knobs.lost_quality, done, 2),
-       jnp.where(accepted, done, 3)], done)
-  return State(following, best, batching.select(stage == 2, found, state.anchor),
-               state.recovered | (stage == 2), state.searched | (stage == 1) | (stage == 3),
+      [stage == 0, stage == 1, stage == 2, stage == 3],
+      [jnp.where(accepted, done, jnp.where(coarse_next, 1, 2)), jnp.where(accepted, done, 2),
+       jnp.where(searched.quality >= knobs.lost_quality, done, 3),
+       jnp.where(accepted, done, 4)], done)
+  return State(following, best, batching.select(stage == 3, found, state.anchor),
+               state.recovered | (stage == 3), state.searched | (stage == 2) | (stage == 4),
                state.retries)
 
 
