@@ -121,7 +121,8 @@ class Stage:
 
 ALIGN = (Stage(), Stage(top=1), Stage(swarm=True, top=2),
          Stage(swarm=True, finer=True, wide=True, top=2))
-"""`align`'s stages: the start, a coarser start, the search, the retry one level finer."""
+"""`align`'s stages: the start, a coarser start, the search, the retry one level finer
+(run again with other seeds, up to `TrackConfig.retries` times, while it disagrees with the best)."""
 TRACK = (Stage(), Stage(top=1), Stage(swarm=True, top=2), Stage(base=1),
          Stage(swarm=True, wide=True, widen=True, translation=True, top=2, base=1))
 """`track`'s stages: the start, a coarser start, the search, then the recovery from the last good estimate."""
