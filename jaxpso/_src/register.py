@@ -134,7 +134,7 @@ class State(NamedTuple):
   Attributes:
     stage: (C,) int32 the next stage (len(stages): done).
     best: `problem.Candidate` the best so far.
-    anchor: `problem.Candidate` align: the start's refinement; track: the recovery's.
+    anchor: `problem.Candidate` track: the recovery's (align does not use it).
     recovered: (C,) bool: track's recovery ran.
     searched: (C,) bool: a swarm ran.
     retries: (C,) int32 align's retries run.
@@ -197,29 +197,43 @@ def _pass(contexts: problems.Context, state: State, knobs: problems.Knobs, stage
   return batching.each(refine_and_check, contexts, u, base, top, iterations, evaluations)
 
 
+def _starts(state: State, found: problems.Candidate, contexts: problems.Context, knobs):
+  """(the merged candidate, the starts' best, whether a coarser start follows a short first one).
+
+  `better(state.best, found)`, and at stage 0 `found` alone; Gauss–Newton from
+  the coarsest level differs from the start's (level 1) with more than two levels.
+  """
+  merged = better(state.best, found)
+  start = batching.select(state.stage == 0, found, merged)
+  coarse_next = jnp.isfinite(knobs.accept_quality) & (contexts.template.levels > 2)
+  return merged, start, coarse_next
+
+
 def _advance_align(state: State, found: problems.Candidate, contexts: problems.Context,
                    knobs: problems.Knobs) -> State:
-  """align's transitions: accepted start → done; else coarser start, search, retry."""
+  """align's transitions: accepted start → done; else coarser start, search, retry.
+
+  After the starts, `state.best` is the start's refinement: the search is
+  compared with it, and each retry with the best so far.
+  """
   stage, done = state.stage, len(ALIGN)
   starting = stage <= 1
-  start = batching.select(stage == 0, found, better(state.best, found))
+  merged, start, coarse_next = _starts(state, found, contexts, knobs)
   accepted = start.quality >= knobs.accept_quality
-  coarse_next = jnp.isfinite(knobs.accept_quality) & (contexts.template.levels > 2)
-  gap = jax.vmap(corner_gap)(found.homography, state.anchor.homography, contexts.template.size)
-  searched = better(found, state.anchor)._replace(confirmed=gap <= _AGREE_PX)
-  settled = (searched.quality >= knobs.retry_quality) | searched.confirmed
-  retried = better(state.best, found)
   gap = jax.vmap(corner_gap)(found.homography, state.best.homography, contexts.template.size)
-  again = ((stage == 3) & (retried.quality < knobs.retry_quality) & (gap > _AGREE_PX)
+  agree = gap <= _AGREE_PX
+  searched = better(found, state.best)._replace(confirmed=agree)
+  settled = (searched.quality >= knobs.retry_quality) | agree
+  again = ((stage == 3) & (merged.quality < knobs.retry_quality) & ~agree
            & (state.retries < knobs.retries))
   best = batching.select(starting, start._replace(confirmed=accepted),
-                         batching.select(stage == 2, searched, retried))
+                         batching.select(stage == 2, searched, merged))
   following = jnp.select(
       [stage == 0, stage == 1, stage == 2],
       [jnp.where(accepted, done, jnp.where(coarse_next, 1, 2)), jnp.where(accepted, done, 2),
        jnp.where(settled, done, 3)], jnp.where(again, 3, done))
-  return State(following, best, batching.select(starting, start, state.anchor),
-               state.recovered, state.searched | (stage >= 2), state.retries + (stage == 3))
+  return State(following, best, state.anchor, state.recovered, state.searched | (stage >= 2),
+               state.retries + (stage == 3))
 
 
 def _advance_track(state: State, found: problems.Candidate, contexts: problems.Context,
@@ -230,16 +244,14 @@ def _advance_track(state: State, found: problems.Candidate, contexts: problems.C
   # search reached (noise and blur lower the right alignment's quality too),
   # unless that was under _MIN_REFERENCE (low texture: too uncertain).
   reference = contexts.reference
-  start = batching.select(stage == 0, found, better(state.best, found))
+  merged, start, coarse_next = _starts(state, found, contexts, knobs)
   quality = jnp.where(stage <= 1, start.quality, found.quality)  # the starts', or the recovery's
   accepted = ((quality >= knobs.accept_quality)
               | ((reference >= _MIN_REFERENCE) & (quality >= reference - _REFERENCE_MARGIN)))
-  coarse_next = jnp.isfinite(knobs.accept_quality) & (contexts.template.levels > 2)
   searched = better(found, state.best)
   recovered = better(found, state.anchor)
   best = batching.select(stage <= 1, start, batching.select(stage == 2, searched, batching.select(
-      stage == 3, batching.select(accepted, better(state.best, found), state.best),
-      better(state.best, recovered))))
+      stage == 3, batching.select(accepted, merged, state.best), better(state.best, recovered))))
   following = jnp.select(
       [stage == 0, stage == 1, stage == 2, stage == 3],
       [jnp.where(accepted, done, jnp.where(coarse_next, 1, 2)), jnp.where(accepted, done, 2),
