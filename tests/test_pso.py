@@ -26,6 +26,7 @@ import pytest
 from jaxpso import pso
 from jaxpso._src.pso import _run
 from jaxpso._src.pso import _run_impl
+from jaxpso._src.swarm_random import _as_seed
 from jaxpso._src.swarm_random import _uniform
 from jaxpso._src.swarm_random import _uniform_pair
 from jaxpso._src.topology import _neighbourhood_best
@@ -900,3 +901,10 @@ def test_bad_key_and_variant_are_rejected():
     pso.default_hparams("adam")
   with pytest.raises(TypeError, match="lower"):
     pso.run(0, _untouchable, jnp.zeros(2, jnp.int32), _TWO, None, config=_SMALL)
+
+
+@pytest.mark.parametrize("key", [0, 1, 7, 2**31 - 1, 2**31, 2**32 - 1, 2**32 + 5, -1, -12345])
+def test_an_int_seed_draws_the_same_seed_as_the_jax_key_of_that_int(key):
+  # Derived on the host (no eager JAX operations to compile), equal to JAX's own.
+  expected = np.asarray(jax.random.bits(jax.random.key(key), (2,), jnp.uint32))
+  np.testing.assert_array_equal(_as_seed(key), expected)

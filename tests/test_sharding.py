@@ -65,8 +65,12 @@ def _checks():
   for chosen in (None, devices[:2]):
     many = jaxpso.track(sequence.frames, rois, config=config, devices=chosen)
     # Not bit-identical (XLA partitions the products per device, so sums are
-    # taken in another order), but within 1e-3 px of one device's.
-    np.testing.assert_allclose(many.corners, one.corners, rtol=0, atol=1e-3)
+    # taken in another order): the float32 loss cannot tell apart estimates a
+    # few thousandths of a pixel from its optimum, so where a refinement stops
+    # differs by up to its stopping tolerance (0.01 px); most corners agree
+    # within 1e-4 px.
+    np.testing.assert_allclose(many.corners, one.corners, rtol=0, atol=1e-2)
+    assert np.median(np.abs(many.corners - one.corners)) < 1e-4
     np.testing.assert_array_equal(many.status, one.status)
   # The frame step keeps the regions split: each device's carry holds its region.
   mesh = sharding.batch_mesh(None, 4)

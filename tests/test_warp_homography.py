@@ -145,6 +145,17 @@ def test_homography_from_corners_matches_opencv():
   assert np.all(w > 0)
 
 
+def test_host_homography_from_corners_matches_opencv():
+  rng = np.random.default_rng(8)
+  src = _random_quads(rng, 32, size=300.0).astype(np.float64)
+  dst = _random_quads(rng, 32, size=300.0).astype(np.float64)
+  h = hm.host_homography_from_corners(src, dst)
+  assert h.dtype == np.float64 and h.shape == (32, 3, 3)
+  for h_ours, s, d in zip(h, src, dst):
+    h_cv = cv2.getPerspectiveTransform(s.astype(np.float32), d.astype(np.float32))
+    np.testing.assert_allclose(h_ours, h_cv / h_cv[2, 2], rtol=1e-6, atol=1e-9 * np.abs(h_cv).max())
+
+
 def test_corner_offsets_round_trip_and_identity():
   x = np.random.default_rng(9).uniform(-8, 8, size=(4, 8)).astype(np.float32)
   h = _to_h(x, SHAPE)

@@ -17,7 +17,6 @@ import functools
 import math
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxpso._src import atlas
@@ -235,7 +234,7 @@ class TrackConfig:
 
 @functools.lru_cache(maxsize=256)
 def _knobs(config: TrackConfig) -> problems.Knobs:
-  return jax.tree.map(jnp.asarray, config.host_knobs())
+  return jax.device_put(config.host_knobs())  # jnp.asarray compiles a program per dtype
 
 
 _RUNTIME = ("search_radius", "max_iterations", "patience", "refine_steps", "accept_quality",

@@ -342,6 +342,29 @@ def homography_from_corners(src, dst) -> jax.Array:
   return jnp.matmul(jnp.matmul(denormalize_dst, core), normalize_src)
 
 
+def host_homography_from_corners(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+  """`homography_from_corners` in NumPy float64, scaled to h[2, 2] = 1 (no JAX dispatch).
+
+  Solves the 8 × 8 linear system of the four correspondences.  For host-side
+  set-up, where eager JAX operations would compile a program each.
+
+  Args:
+    src: (N, 4, 2) source corners, TL, TR, BR, BL.
+    dst: (N, 4, 2) destination corners.
+
+  Returns:
+    (N, 3, 3) float64 homographies with dst_i ~ H src_i.
+  """
+  x, y = src[..., 0], src[..., 1]
+  u, v = dst[..., 0], dst[..., 1]
+  one, zero = np.ones_like(x), np.zeros_like(x)
+  rows_u = np.stack([x, y, one, zero, zero, zero, -u * x, -u * y], -1)  # (N, 4, 8)
+  rows_v = np.stack([zero, zero, zero, x, y, one, -v * x, -v * y], -1)
+  system = np.concatenate([rows_u, rows_v], -2)  # (N, 8, 8)
+  h = np.linalg.solve(system, np.concatenate([u, v], -1)[..., None])[..., 0]
+  return np.concatenate([h, np.ones(h.shape[:-1] + (1,))], -1).reshape(h.shape[:-1] + (3, 3))
+
+
 def corner_offsets_to_homography(x, shape) -> jax.Array:
   """Homography C(x) moving the template corners by the offsets `x`.
 

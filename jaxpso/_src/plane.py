@@ -240,10 +240,14 @@ def default_camera(shape) -> jax.Array:
   Returns:
     (3, 3) camera matrix, default float dtype.
   """
+  return jnp.asarray(_default_camera(shape), dtype=float)
+
+
+def _default_camera(shape) -> np.ndarray:
+  """`default_camera` as float64 NumPy."""
   h, w = check_shape2d(shape, "shape")
   f = float(max(h, w))
-  k = np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
-  return jnp.asarray(k, dtype=float)
+  return np.array([[f, 0.0, (w - 1) / 2], [0.0, f, (h - 1) / 2], [0.0, 0.0, 1.0]])
 
 
 def checked_camera(camera, frame_shape) -> np.ndarray:
@@ -252,7 +256,7 @@ def checked_camera(camera, frame_shape) -> np.ndarray:
   Raises ValueError unless finite and invertible (host-side, for the entry
   points' arguments).
   """
-  k = (np.asarray(default_camera(frame_shape), np.float64) if camera is None
+  k = (_default_camera(frame_shape) if camera is None
        else np.asarray(camera, np.float64))
   if k.shape != (3, 3) or not np.all(np.isfinite(k)) or abs(np.linalg.det(k)) < 1e-12:
     raise ValueError(f"camera must be a finite, invertible 3×3 matrix, got {camera!r}")

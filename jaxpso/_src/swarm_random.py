@@ -13,15 +13,13 @@ independent.
 
 from __future__ import annotations
 
-import functools
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 
-def _as_seed(key) -> jax.Array:
-  """(2,) uint32 seed drawn from an int seed, a raw uint32[2] key or a typed key."""
+def _as_seed(key) -> jax.Array | np.ndarray:
+  """(2,) uint32 seed drawn from an int seed (on the host), a raw uint32[2] key or a typed key."""
   if isinstance(key, int):
     return _int_seed(key)
   given = key
@@ -41,10 +39,28 @@ def _as_seed(key) -> jax.Array:
   return jax.random.bits(key, (2,), jnp.uint32)
 
 
-@functools.lru_cache(maxsize=256)
-def _int_seed(key: int) -> jax.Array:
-  """`_as_seed` of an int (cached: deriving it is a few eager dispatches)."""
-  return _as_seed(jax.random.key(key))
+def _int_seed(key: int) -> np.ndarray:
+  """`_as_seed(jax.random.key(key))` on the host, JAX's default settings (32-bit keys).
+
+  Threefry-2x32 of the key (0, key mod 2³²) at counters 0 and 1, the two
+  words XOR-ed, as `jax.random.bits`; as eager JAX operations it compiled
+  several programs in every process.
+  """
+  words = _threefry2x32(np.uint32(0), np.uint32(key & 0xFFFFFFFF), np.zeros(2, np.uint32),
+                        np.arange(2, dtype=np.uint32))
+  return words[0] ^ words[1]
+
+
+def _threefry2x32(k0, k1, x0, x1):
+  """Threefry-2x32 (20 rounds) of the counter words (x0, x1) under the key (k0, k1), uint32 NumPy."""
+  keys = (k0, k1, k0 ^ k1 ^ np.uint32(0x1BD11BDA))
+  x0, x1 = x0 + keys[0], x1 + keys[1]
+  for block in range(5):
+    for r in ((13, 15, 26, 6), (17, 29, 16, 24))[block % 2]:
+      x0 = x0 + x1
+      x1 = ((x1 << np.uint32(r)) | (x1 >> np.uint32(32 - r))) ^ x0
+    x0, x1 = x0 + keys[(block + 1) % 3], x1 + keys[(block + 2) % 3] + np.uint32(block + 1)
+  return x0, x1
 
 
 # Random streams: one per use within an iteration.

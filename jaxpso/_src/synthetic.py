@@ -12,16 +12,15 @@ rendered lazily, one at a time, for sequences too long to hold in memory.
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import Iterator, NamedTuple
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from jaxpso._src import checks
 from jaxpso._src import data
-from jaxpso._src import homography
 from jaxpso._src import plane
 from jaxpso._src import sampling
 
@@ -111,6 +110,35 @@ def _occluder_box(corners, margin: float, frame_shape) -> tuple[slice, slice]:
   return slice(max(y0, 0), min(y1, height)), slice(max(x0, 0), min(x1, width))
 
 
+def _poses(params: np.ndarray) -> np.ndarray:
+  """(T, 4, 4) float64 `plane.pose_from_params` of (T, 6) parameters, on the host.
+
+  As eager JAX operations this compiled some thirty small programs in every process.
+  """
+  omega = params[:, 3:]
+  theta2 = np.sum(omega * omega, -1)[:, None, None]
+  theta = np.sqrt(np.maximum(theta2, 1e-300))
+  small = theta2 < 1e-12
+  a = np.where(small, 1 - theta2 / 6, np.sin(theta) / theta)
+  b = np.where(small, 0.5 - theta2 / 24, (1 - np.cos(theta)) / np.maximum(theta2, 1e-300))
+  x, y, z = omega[:, 0], omega[:, 1], omega[:, 2]
+  zero = np.zeros_like(x)
+  skew = np.stack([zero, -z, y, z, zero, -x, -y, x, zero], -1).reshape(-1, 3, 3)
+  poses = np.broadcast_to(np.eye(4), (len(params), 4, 4)).copy()
+  poses[:, :3, :3] = np.eye(3) + a * skew + b * (skew @ skew)
+  poses[:, :3, 3] = params[:, :3]
+  return poses
+
+
+@functools.partial(jax.jit, static_argnames=("shape",))
+def _render(texture, frame_to_texture, *, shape):
+  """(1, H, W) the texture pulled through a (1, 3, 3) frame → texture homography.
+
+  One program per frame shape and process (a `jax.jit` per sequence compiled one per sequence).
+  """
+  return sampling.warp_image(texture, frame_to_texture, shape)[0]
+
+
 def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320),
                   roi_size=(100, 100), texture: str = "camera", camera=None,
                   normal=(0.0, 0.0, 1.0), distance: float = 1.0,
@@ -187,7 +215,7 @@ def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320
   rng = np.random.default_rng(seed)
   occluder_rng = rng.spawn(1)[0]  # a stream of its own: rng's noise stays that of no occlusion
   params = _trajectory(rng, num_frames, translation, rotation, jumps, jump_size)
-  poses = np.asarray(plane.pose_from_params(jnp.asarray(params, jnp.float32)), np.float64)
+  poses = _poses(np.asarray(params, np.float64))
   rotations, shifts = poses[:, :3, :3], poses[:, :3, 3]
   frame0_to_frame = camera @ (rotations + shifts[:, :, None] * normal[None, None, :] / distance) \
       @ np.linalg.inv(camera)
@@ -195,8 +223,9 @@ def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320
   x0, y0 = (width - w) // 2, (height - h) // 2
   truth = frame0_to_frame @ np.array([[1.0, 0, x0], [0, 1, y0], [0, 0, 1]])
   truth /= truth[:, 2:3, 2:3]
-  corners = np.asarray(homography.apply_to_points(
-      jnp.asarray(truth, jnp.float32), homography.rect_corners((h, w)).astype(jnp.float32))[0])
+  rect = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], np.float64)
+  mapped = rect @ np.swapaxes(truth, -1, -2)  # (T, 4, 3)
+  corners = mapped[..., :2] / mapped[..., 2:]
 
   image = data.load_image(texture)
   minification = image.shape[1] / (2.0 * width)  # texture pixels per frame-0 pixel
@@ -209,13 +238,14 @@ def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320
   frame_to_texture = np.linalg.inv(texture_to_frame)
   frame_to_texture /= frame_to_texture[:, 2:3, 2:3]
   frame_to_texture = frame_to_texture.astype(np.float32)
-  render = jax.jit(lambda hs: sampling.warp_image(jnp.asarray(image), hs, (height, width))[0])
+  texture = jax.device_put(image.astype(np.float32))
   margin = _OCCLUDER_MARGIN * max(h, w)
 
   def frames() -> Iterator[np.ndarray]:
     """The (H, W) float32 frames in order; the noise is drawn frame by frame."""
     for k in range(num_frames):
-      frame = np.asarray(render(frame_to_texture[k:k + 1]), np.float64)[0]
+      frame = np.asarray(_render(texture, frame_to_texture[k:k + 1], shape=(height, width)),
+                         np.float64)[0]
       if gain_drift:
         frame = frame * (1 + gain_drift * np.sin(2 * np.pi * k / num_frames)) \
             + 0.5 * gain_drift * k / num_frames

@@ -224,14 +224,13 @@ def _to_host(outputs: list) -> dict:
 def _starts(regions: list) -> np.ndarray:
   """(R, 3, 3) float32 homographies from each template onto its corners in frame 0, h[2, 2] = 1.
 
-  `regions`: R (corners (4, 2), (rows, cols)) pairs.  One batched call, not
-  eager operations per region (benchmarks/README.md, batch.py).
+  `regions`: R (corners (4, 2), (rows, cols)) pairs.  On the host: as eager
+  JAX operations they compiled some thirty small programs in every process.
   """
   rects = np.array([[[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]]
-                    for _, (rows, cols) in regions], np.float32)
-  corners = np.stack([c for c, _ in regions]).astype(np.float32)
-  h = np.asarray(homography.homography_from_corners(rects, corners), np.float64)
-  return (h / h[:, 2:, 2:]).astype(np.float32)
+                    for _, (rows, cols) in regions], np.float64)
+  corners = np.stack([c for c, _ in regions]).astype(np.float64)
+  return homography.host_homography_from_corners(rects, corners).astype(np.float32)
 
 
 def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=None,
@@ -342,7 +341,7 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
   carry = sharding.split(_Carry(
       first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32), (count, size, size)),
       np.ones(count, np.int32), np.ones(count, np.float32)), mesh)
-  knobs = sharding.replicate(jax.tree.map(jnp.asarray, config.knobs()), mesh)
+  knobs = sharding.replicate(config.knobs(), mesh)
   capacity = atlas.capacity(sum(h * w for h, w in atlas.level_shapes(frame_shape, levels)))
 
   chunks = [{k: v[:, None] for k, v in dict(
