@@ -536,3 +536,35 @@ def test_template_self_losses_match_the_measures():
   np.testing.assert_allclose(-mi, got["mi"], rtol=1e-5)
   assert ncc == -1.0 and got["ncc"] == pytest.approx(1.0, abs=1e-5)
   np.testing.assert_allclose(ssd_scale, a.var(), rtol=1e-5)
+
+
+def test_mi_adapted_template_is_the_least_squares_remap_of_the_template():
+  # MI's Gauss–Newton matches the image against T̃ = X·c, X the template's
+  # bin weights.  Fitted by (ridged) least squares, T̃ follows a smooth
+  # intensity remap far closer than per-bin mean intensities did, which
+  # pulled the fixed point of low-contrast templates off the alignment
+  # (measured: RMS residual 0.0054 vs 0.018 under gamma 0.5).
+  from jaxpso._src import measures, refine, template
+  a = _camera_patch(100, 200).reshape(-1).astype(np.float64)
+  value_range = template.value_range(a)
+  x = np.asarray(measures.bin_weights(jnp.asarray(a, jnp.float32), 16, jnp.asarray(value_range),
+                                      True), np.float64)  # (n, 16)
+  image = np.sqrt(np.clip(a, 0, None))  # gamma 0.5
+  remap = template.remaps([a], 16, value_range)[0]
+  sums, counts = x.T @ image, x.sum(0)
+
+  def residual(c):
+    return np.sqrt(np.mean((image - x @ np.asarray(c, np.float64)) ** 2))
+
+  fitted = refine.adapted_coefficients("mi", None, (jnp.asarray(sums, jnp.float32),
+                                                    jnp.asarray(counts, jnp.float32), remap))
+  per_bin_means = (sums + image.mean()) / (counts + 1.0)
+  assert residual(fitted) < 0.5 * residual(per_bin_means), (residual(fitted), residual(per_bin_means))
+  # A third of the points invalid (the darkest): the set's inverse is not the
+  # valid points', and T̃ falls back to each bin's mean intensity.
+  valid = a > np.quantile(a, 1 / 3)
+  sums, counts = x[valid].T @ image[valid], x[valid].sum(0)
+  fallback = refine.adapted_coefficients("mi", None, (jnp.asarray(sums, jnp.float32),
+                                                      jnp.asarray(counts, jnp.float32), remap))
+  means = (sums + sums.sum() / counts.sum()) / (counts + 1.0)
+  np.testing.assert_allclose(fallback, means, rtol=1e-5)

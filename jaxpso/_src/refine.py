@@ -5,9 +5,14 @@ squared differences between the warped image and a photometrically adapted
 template T̃ reach sub-pixel accuracy.  T̃ follows the similarity being
 maximised, so the refinement keeps its invariances:
 
-* "mi": T̃ = E[I | T], the image's mean intensity in each soft template bin
-  (the sum of conditional variance of Richa et al., 2011: invariant to any
-  one-to-one intensity mapping, inversion included);
+* "mi": T̃ = X·c, a cubic B-spline remap of the template's intensities
+  fitted to the image's by least squares (in the spirit of the sum of
+  conditional variance of Richa et al., 2011: invariant to any smooth
+  one-to-one intensity mapping, inversion included).  Per-bin mean
+  intensities, the earlier fit, are biased wherever the template's histogram
+  is uneven within a bin's support; on low-contrast templates that moved
+  Gauss–Newton's fixed point pixels away from the alignment along a weakly
+  constrained corner (benchmarks/README.md, issue 18: status precision);
 * "ncc": T̃ = a·T + b, the least-squares gain and bias;
 * "ssd": T̃ = T.
 
@@ -34,6 +39,9 @@ _DAMPING, _GROW, _SHRINK = 1e-3, 10.0, 0.3
 # moving no parameter by more than _NOISE × the tolerance: there the loss no
 # longer resolves the moves (more steps would only spend evaluations).
 _MAX_REJECTED, _NOISE = 3, 4.0
+# MI's adapted template is fitted by least squares while at most this share
+# of the set's points is invalid (outside the image), else by bin means.
+_INVALID_SHARE = 1e-3
 
 
 def adapted_coefficients(similarity: str, stats, per_bin=None):
@@ -42,14 +50,20 @@ def adapted_coefficients(similarity: str, stats, per_bin=None):
   Args:
     similarity: "mi", "ncc" or "ssd".
     stats: the "ncc" statistics over the valid points (`measures`).
-    per_bin: "mi": (2, bins) Σ m·I·β(T) and Σ m·β(T), the image's intensity
-      summed per template bin, and the bins' weights.
+    per_bin: "mi": (bins,) Σ m·I·β(T) and (bins,) Σ m·β(T), the image's
+      intensity summed per template bin over the valid points (m) and the
+      bins' weights, and the set's `template.Template.remap` (2, bins, bins).
   """
   if similarity == "mi":
-    sums, counts = per_bin
+    sums, counts, (gram, inverse) = per_bin
     mean = jnp.sum(sums) / jnp.maximum(jnp.sum(counts), 1.0)
-    # A pseudo-count of one pixel at the mean intensity keeps empty bins finite.
-    return (sums + mean) / (counts + 1.0)
+    # Every point valid (the usual case): c = argmin Σ (I − X·c)² + |c − mean|²,
+    # least squares ridged toward the mean intensity, with the set's
+    # precomputed (XᵀX + I)⁻¹.  Otherwise that inverse is not the valid
+    # points' and c is each bin's mean intensity, a pseudo-count of one pixel
+    # at the mean keeping empty bins finite.
+    everywhere = jnp.sum(counts) >= (1.0 - _INVALID_SHARE) * jnp.sum(gram)
+    return jnp.where(everywhere, inverse @ (sums + mean), (sums + mean) / (counts + 1.0))
   if similarity == "ncc":
     _, mean_t, mean_i, var_t, _, cov = measures.ncc_moments(stats)
     gain = jnp.where(var_t > 1e-12, cov / jnp.where(var_t > 1e-12, var_t, 1.0), 0.0)

@@ -77,6 +77,10 @@ class Template(NamedTuple):
     self_loss: (3,) float32 the template's loss against itself under "mi"
       (binned over `value_range` with `bins` bins), "ncc" and "ssd" (its
       variance): `quality`'s scale.
+    remap: (MAX_LEVELS, 2, bins, bins) float32 per level set, XᵀX of its
+      points' MI bin weights X and the inverse of XᵀX + I: MI's
+      Gauss–Newton fits the adapted template T̃ = X·c by least squares
+      (`refine.adapted_coefficients`); identities past `levels`.
   """
   points: jax.Array
   values: jax.Array
@@ -85,6 +89,7 @@ class Template(NamedTuple):
   size: jax.Array
   value_range: jax.Array
   self_loss: jax.Array
+  remap: jax.Array
 
 
 SIMILARITIES = ("mi", "ncc", "ssd")
@@ -138,8 +143,8 @@ def value_range(values: np.ndarray) -> np.ndarray:
 _CUBIC_PIECES = np.array([[1, 4, 1, 0], [-3, 0, 3, 0], [3, -6, 3, 0], [-1, 3, -3, 1]]) / 6.0
 
 
-def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
-  """(3,) float32 the loss of intensities (n,) against themselves: −MI, −NCC, SSD's scale (variance)."""
+def _bin_weights(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
+  """(n, bins) float64 cubic B-spline weights of intensities (n,) (`measures.bin_weights` on the host)."""
   lo, hi = (float(v) for v in value_range_)
   s = 1.0 + (np.clip(values, lo, hi) - lo) * ((bins - 3) / (hi - lo))
   # Each intensity weighs bins ⌊s⌋ − 1 … ⌊s⌋ + 2 (the cubic B-spline's four
@@ -151,7 +156,13 @@ def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.n
   rows = np.arange(s.size) * (bins + 3) + whole.astype(np.int64) - 1
   dense = np.zeros((s.size, bins + 3))
   dense.reshape(-1)[(rows[:, None] + np.arange(4)).reshape(-1)] = pieces.reshape(-1)
-  joint = dense[:, :bins].T @ dense[:, :bins]
+  return dense[:, :bins]
+
+
+def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
+  """(3,) float32 the loss of intensities (n,) against themselves: −MI, −NCC, SSD's scale (variance)."""
+  weights = _bin_weights(values, bins, value_range_)
+  joint = weights.T @ weights
   p = joint / joint.sum()
 
   def entropy(q):
@@ -164,6 +175,17 @@ def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.n
   return np.array([-mi, -1.0 if textured else 0.0, variance], np.float32)
 
 
+def remaps(level_values: list, bins: int, value_range_: np.ndarray) -> np.ndarray:
+  """(MAX_LEVELS, 2, bins, bins) float32 `Template.remap` of each level set's intensities (n_l,)."""
+  eye = np.eye(bins)
+  out = np.broadcast_to(eye, (atlas.MAX_LEVELS, 2, bins, bins)).copy()
+  for index, values in enumerate(level_values):
+    weights = _bin_weights(values, bins, value_range_)
+    gram = weights.T @ weights
+    out[index] = gram, np.linalg.inv(gram + eye)
+  return out.astype(np.float32)
+
+
 def prepare(template: np.ndarray, levels: int, pixels: float, bins: int,
             resolution: int = RESOLUTION) -> Template:
   """(h, w) float32 template → its `Template` (NumPy arrays).
@@ -172,7 +194,7 @@ def prepare(template: np.ndarray, levels: int, pixels: float, bins: int,
     template: (h, w) grey template; `levels` levels must stay at least 2×2.
     levels: pyramid levels, 1 to MAX_LEVELS.
     pixels: fraction of level 0's pixels (largest gradient) the refinement uses.
-    bins: MI's histogram bins (for `Template.self_loss`).
+    bins: MI's histogram bins (for `Template.self_loss` and `Template.remap`).
     resolution: points per set at most.
   """
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
@@ -200,8 +222,10 @@ def prepare(template: np.ndarray, levels: int, pixels: float, bins: int,
     sets[index] = offset, flat.size
   full = chosen[FULL][0].reshape(-1)[chosen[FULL][1]].astype(np.float64)
   value_range_ = value_range(full)
+  level_values = [values[offset:offset + count].astype(np.float64) for offset, count in sets[:levels]]
   return Template(points, values, sets, np.int32(levels), np.asarray(template.shape, np.float32),
-                  value_range_, self_losses(full, bins, value_range_))
+                  value_range_, self_losses(full, bins, value_range_),
+                  remaps(level_values, bins, value_range_))
 
 
 # `prepared` keeps the last few prepared templates: aligning one template
