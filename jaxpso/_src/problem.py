@@ -218,7 +218,7 @@ class Problem:
 
     J = B·M: B = ∂I(W(p))/∂h per point in closed form, M = ∂h/∂u, over
     h's first 8 entries (h[2, 2] = 1 does not move).  T̃ is linear in its
-    coefficients (per-bin means for "mi",
+    coefficients (a B-spline remap for "mi",
     gain and bias for "ncc"), so Bᵀr = BᵀI − (BᵀX)·coefficients with X the
     template's bin weights (or [T, 1]): one pass sums BᵀB, BᵀI, BᵀX and the
     similarity's statistics, in one matrix product per chunk, and T̃ comes
