@@ -143,26 +143,30 @@ def value_range(values: np.ndarray) -> np.ndarray:
 _CUBIC_PIECES = np.array([[1, 4, 1, 0], [-3, 0, 3, 0], [3, -6, 3, 0], [-1, 3, -3, 1]]) / 6.0
 
 
-def _bin_weights(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
-  """(n, bins) float64 cubic B-spline weights of intensities (n,) (`measures.bin_weights` on the host)."""
+def _bin_dense(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
+  """(n, bins + 3) float64 cubic B-spline bin weights of intensities (n,) (`measures.bin_weights` on the host).
+
+  Each intensity weighs bins ⌊s⌋ − 1 … ⌊s⌋ + 2 (the cubic B-spline's four
+  pieces at t = s − ⌊s⌋), scattered into a dense matrix; the columns past
+  `bins` only ever get weight 0 (at s = bins − 2).  Its XᵀX was faster
+  than a sum of 4 × 4 blocks (0.21 vs 0.28–0.30 ms for 2 500 intensities)
+  and than a `bincount` of the 16 products per intensity.
+  """
   lo, hi = (float(v) for v in value_range_)
   s = 1.0 + (np.clip(values, lo, hi) - lo) * ((bins - 3) / (hi - lo))
-  # Each intensity weighs bins ⌊s⌋ − 1 … ⌊s⌋ + 2 (the cubic B-spline's four
-  # pieces at t = s − ⌊s⌋), scattered into a dense (n, bins + 3) matrix
-  # (the columns past `bins` only ever get weight 0, at s = bins − 2).
   whole = np.floor(s)
   t = s - whole
   pieces = np.stack([np.ones_like(t), t, t * t, t * t * t], axis=1) @ _CUBIC_PIECES
   rows = np.arange(s.size) * (bins + 3) + whole.astype(np.int64) - 1
   dense = np.zeros((s.size, bins + 3))
   dense.reshape(-1)[(rows[:, None] + np.arange(4)).reshape(-1)] = pieces.reshape(-1)
-  return dense[:, :bins]
+  return dense
 
 
 def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
   """(3,) float32 the loss of intensities (n,) against themselves: −MI, −NCC, SSD's scale (variance)."""
-  weights = _bin_weights(values, bins, value_range_)
-  joint = weights.T @ weights
+  dense = _bin_dense(values, bins, value_range_)
+  joint = (dense.T @ dense)[:bins, :bins]
   p = joint / joint.sum()
 
   def entropy(q):
@@ -179,9 +183,11 @@ def remaps(level_values: list, bins: int, value_range_: np.ndarray) -> np.ndarra
   """(MAX_LEVELS, 2, bins, bins) float32 `Template.remap` of each level set's intensities (n_l,)."""
   eye = np.eye(bins)
   out = np.broadcast_to(eye, (atlas.MAX_LEVELS, 2, bins, bins)).copy()
-  for index, values in enumerate(level_values):
-    weights = _bin_weights(values, bins, value_range_)
-    gram = weights.T @ weights
+  dense = _bin_dense(np.concatenate(level_values), bins, value_range_)  # one pass for every level
+  ends = np.cumsum([v.size for v in level_values])
+  for index, (start, end) in enumerate(zip(np.r_[0, ends[:-1]], ends)):
+    part = dense[start:end]
+    gram = (part.T @ part)[:bins, :bins]
     out[index] = gram, np.linalg.inv(gram + eye)
   return out.astype(np.float32)
 
