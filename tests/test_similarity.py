@@ -557,7 +557,7 @@ def test_mi_adapted_template_is_the_least_squares_remap_of_the_template():
     return np.sqrt(np.mean((image - x @ np.asarray(c, np.float64)) ** 2))
 
   fitted = refine.adapted_coefficients("mi", None, (jnp.asarray(sums, jnp.float32),
-                                                    jnp.asarray(counts, jnp.float32), remap))
+                                                    jnp.asarray(counts, jnp.float32), remap, a.size))
   per_bin_means = (sums + image.mean()) / (counts + 1.0)
   assert residual(fitted) < 0.5 * residual(per_bin_means), (residual(fitted), residual(per_bin_means))
   # A third of the points invalid (the darkest): the set's inverse is not the
@@ -565,6 +565,7 @@ def test_mi_adapted_template_is_the_least_squares_remap_of_the_template():
   valid = a > np.quantile(a, 1 / 3)
   sums, counts = x[valid].T @ image[valid], x[valid].sum(0)
   fallback = refine.adapted_coefficients("mi", None, (jnp.asarray(sums, jnp.float32),
-                                                      jnp.asarray(counts, jnp.float32), remap))
+                                                      jnp.asarray(counts, jnp.float32), remap,
+                                                      a.size))
   means = (sums + sums.sum() / counts.sum()) / (counts + 1.0)
   np.testing.assert_allclose(fallback, means, rtol=1e-5)

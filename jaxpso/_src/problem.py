@@ -269,7 +269,7 @@ class Problem:
     per_bin = None
     if name == "mi":
       stats = products[10:, 8:].T  # the joint histogram, template bins along the rows
-      per_bin = (products[8, 8:], products[9, 8:], self.template.remap[level])
+      per_bin = (products[8, 8:], products[9, 8:], self.template.remap[level], count)
     normal, slopes_image = products[:8, :8], products[8, :8]
     slopes_template = products[:8, 8:] @ refine.adapted_coefficients(name, stats, per_bin)
     by_motion = jax.jacfwd(to_level)(u).reshape(9, -1)[:8]  # h[2, 2] = 1 stays put

@@ -52,17 +52,18 @@ def adapted_coefficients(similarity: str, stats, per_bin=None):
     stats: the "ncc" statistics over the valid points (`measures`).
     per_bin: "mi": (bins,) Σ m·I·β(T) and (bins,) Σ m·β(T), the image's
       intensity summed per template bin over the valid points (m) and the
-      bins' weights, and the set's `template.Template.remap` (2, bins, bins).
+      bins' weights, the set's `template.Template.remap` (bins, bins) and
+      () its number of points.
   """
   if similarity == "mi":
-    sums, counts, (gram, inverse) = per_bin
+    sums, counts, inverse, size = per_bin
     mean = jnp.sum(sums) / jnp.maximum(jnp.sum(counts), 1.0)
     # Every point valid (the usual case): c = argmin Σ (I − X·c)² + |c − mean|²,
     # least squares ridged toward the mean intensity, with the set's
     # precomputed (XᵀX + I)⁻¹.  Otherwise that inverse is not the valid
     # points' and c is each bin's mean intensity, a pseudo-count of one pixel
     # at the mean keeping empty bins finite.
-    everywhere = jnp.sum(counts) >= (1.0 - _INVALID_SHARE) * jnp.sum(gram)
+    everywhere = jnp.sum(counts) >= (1.0 - _INVALID_SHARE) * size  # Σ_b β_b = 1 per point
     return jnp.where(everywhere, inverse @ (sums + mean), (sums + mean) / (counts + 1.0))
   if similarity == "ncc":
     _, mean_t, mean_i, var_t, _, cov = measures.ncc_moments(stats)

@@ -77,10 +77,10 @@ class Template(NamedTuple):
     self_loss: (3,) float32 the template's loss against itself under "mi"
       (binned over `value_range` with `bins` bins), "ncc" and "ssd" (its
       variance): `quality`'s scale.
-    remap: (MAX_LEVELS, 2, bins, bins) float32 per level set, XᵀX of its
-      points' MI bin weights X and the inverse of XᵀX + I: MI's
-      Gauss–Newton fits the adapted template T̃ = X·c by least squares
-      (`refine.adapted_coefficients`); identities past `levels`.
+    remap: (MAX_LEVELS, bins, bins) float32 per level set, (XᵀX + I)⁻¹ of
+      its points' MI bin weights X: MI's Gauss–Newton fits the adapted
+      template T̃ = X·c by least squares (`refine.adapted_coefficients`);
+      identities past `levels`.
   """
   points: jax.Array
   values: jax.Array
@@ -180,15 +180,15 @@ def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.n
 
 
 def remaps(level_values: list, bins: int, value_range_: np.ndarray) -> np.ndarray:
-  """(MAX_LEVELS, 2, bins, bins) float32 `Template.remap` of each level set's intensities (n_l,)."""
+  """(MAX_LEVELS, bins, bins) float32 `Template.remap` of each level set's intensities (n_l,)."""
   eye = np.eye(bins)
-  out = np.broadcast_to(eye, (atlas.MAX_LEVELS, 2, bins, bins)).copy()
+  out = np.broadcast_to(eye, (atlas.MAX_LEVELS, bins, bins)).copy()
   dense = _bin_dense(np.concatenate(level_values), bins, value_range_)  # one pass for every level
   ends = np.cumsum([v.size for v in level_values])
   for index, (start, end) in enumerate(zip(np.r_[0, ends[:-1]], ends)):
     part = dense[start:end]
     gram = (part.T @ part)[:bins, :bins]
-    out[index] = gram, np.linalg.inv(gram + eye)
+    out[index] = np.linalg.inv(gram + eye)
   return out.astype(np.float32)
 
 
