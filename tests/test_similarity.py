@@ -550,7 +550,7 @@ def test_mi_adapted_template_is_the_least_squares_remap_of_the_template():
   x = np.asarray(measures.bin_weights(jnp.asarray(a, jnp.float32), 16, jnp.asarray(value_range),
                                       True), np.float64)  # (n, 16)
   image = np.sqrt(np.clip(a, 0, None))  # gamma 0.5
-  remap = template.remaps([a], 16, value_range)[0]
+  remap = template.remap(a, 16, value_range)
   sums, counts = x.T @ image, x.sum(0)
 
   def residual(c):
@@ -569,3 +569,29 @@ def test_mi_adapted_template_is_the_least_squares_remap_of_the_template():
                                                       a.size))
   means = (sums + sums.sum() / counts.sum()) / (counts + 1.0)
   np.testing.assert_allclose(fallback, means, rtol=1e-5)
+
+
+def test_mi_first_phase_fits_a_gain_and_bias_in_the_template_bins():
+  # MI's first Gauss–Newton phase: T̃ = X·c with c = a·k + b over the bin
+  # indices k, the least-squares gain and bias of the image against the
+  # template (in bin units), from the per-bin sums alone.
+  from jaxpso._src import measures, refine, template
+  a = _camera_patch(100, 200).reshape(-1).astype(np.float64)
+  value_range = template.value_range(a)
+  x = np.asarray(measures.bin_weights(jnp.asarray(a, jnp.float32), 16, jnp.asarray(value_range),
+                                      True), np.float64)  # (n, 16)
+  remap = template.remap(a, 16, value_range)
+  s = x @ np.arange(16.0)  # the template in bin units: the bins reproduce linear functions
+  for image in (0.7 * a + 0.2, 1.0 - a, np.sqrt(np.clip(a, 0, None))):
+    per_bin = (jnp.asarray(x.T @ image, jnp.float32), jnp.asarray(x.sum(0), jnp.float32), remap,
+               a.size)
+    c = np.asarray(refine.adapted_coefficients("mi", None, per_bin, linear=True), np.float64)
+    gain, bias = np.polyfit(s, image, 1)
+    np.testing.assert_allclose(c, gain * np.arange(16.0) + bias, atol=2e-4)
+  # A flat template: no gain, T̃ the image's mean.
+  flat = np.full_like(a, 0.5)
+  x = np.asarray(measures.bin_weights(jnp.asarray(flat, jnp.float32), 16, jnp.asarray(value_range),
+                                      True), np.float64)
+  per_bin = (jnp.asarray(x.T @ a, jnp.float32), jnp.asarray(x.sum(0), jnp.float32), remap, a.size)
+  c = np.asarray(refine.adapted_coefficients("mi", None, per_bin, linear=True))
+  np.testing.assert_allclose(c, a.mean(), atol=1e-4)

@@ -213,7 +213,7 @@ class Problem:
     return measures.empty(self.measure, lead, first, reference[..., 0])
 
   # ------------------------------------------------------------ Gauss–Newton
-  def _linearise(self, u, base, level, bins):
+  def _linearise(self, u, base, level, bins, first):
     """(loss, JᵀJ, Jᵀr) of the adapted SSD at u over level `level`'s set, in one chunk pass.
 
     J = B·M: B = ∂I(W(p))/∂h per point in closed form, M = ∂h/∂u, over
@@ -222,7 +222,8 @@ class Problem:
     gain and bias for "ncc"), so Bᵀr = BᵀI − (BᵀX)·coefficients with X the
     template's bin weights (or [T, 1]): one pass sums BᵀB, BᵀI, BᵀX and the
     similarity's statistics, in one matrix product per chunk, and T̃ comes
-    after.  `bins`: the set's `_template_bins`.
+    after.  `bins`: the set's `_template_bins`; `first` () bool: MI's first
+    phase, T̃ a gain and bias (`refine`).
     """
     name = self.config.similarity
     ranges = self.ranges(base)
@@ -269,9 +270,9 @@ class Problem:
     per_bin = None
     if name == "mi":
       stats = products[10:, 8:].T  # the joint histogram, template bins along the rows
-      per_bin = (products[8, 8:], products[9, 8:], self.template.remap[level], count)
+      per_bin = (products[8, 8:], products[9, 8:], self.template.remap, count)
     normal, slopes_image = products[:8, :8], products[8, :8]
-    slopes_template = products[:8, 8:] @ refine.adapted_coefficients(name, stats, per_bin)
+    slopes_template = products[:8, 8:] @ refine.adapted_coefficients(name, stats, per_bin, first)
     by_motion = jax.jacfwd(to_level)(u).reshape(9, -1)[:8]  # h[2, 2] = 1 stays put
     loss = self._loss(stats, level, u, base)
     return (loss, by_motion.T @ normal @ by_motion,
@@ -284,14 +285,16 @@ class Problem:
 
   def descend(self, u, base, top):
     """u refined by Gauss–Newton from level `top` down to full resolution → (u, steps)."""
+    mi = self.config.similarity == "mi"  # a gain and bias first, the remap at level 0 (`refine`)
+
     def body(carry):
       u, level, steps = carry
       bins = self._template_bins(level)
       u, _, taken = refine.levenberg_marquardt(
-          u, lambda v: self._linearise(v, base, level, bins),
+          u, lambda v, first: self._linearise(v, base, level, bins, first),
           lambda v: self._level_loss(v, base, level, bins), self.knobs.refine_steps,
           jnp.where(level > 0, _COARSE_TOLERANCE, _TOLERANCE)
-          * jnp.exp2(level.astype(jnp.float32)))
+          * jnp.exp2(level.astype(jnp.float32)), first=mi, second=level == 0)
       return u, level - 1, steps + taken
 
     u, _, steps = jax.lax.while_loop(lambda c: c[1] >= 0, body,

@@ -5,14 +5,20 @@ squared differences between the warped image and a photometrically adapted
 template T̃ reach sub-pixel accuracy.  T̃ follows the similarity being
 maximised, so the refinement keeps its invariances:
 
-* "mi": T̃ = X·c, a cubic B-spline remap of the template's intensities
-  fitted to the image's by least squares (in the spirit of the sum of
-  conditional variance of Richa et al., 2011: invariant to any smooth
-  one-to-one intensity mapping, inversion included).  Per-bin mean
-  intensities, the earlier fit, are biased wherever the template's histogram
-  is uneven within a bin's support; on low-contrast templates that moved
-  Gauss–Newton's fixed point pixels away from the alignment along a weakly
-  constrained corner (benchmarks/README.md, issue 18: status precision);
+* "mi": two phases.  First T̃ = a·T + b, gain and bias fitted by least
+  squares (expressed in the template's cubic B-spline bins, which reproduce
+  linear functions); then, once that has converged, T̃ = X·c, a B-spline
+  remap of the template's intensities fitted to the image's by least
+  squares (in the spirit of the sum of conditional variance of Richa et
+  al., 2011: invariant to any smooth one-to-one intensity mapping).  Why
+  both: the remap's 16 coefficients, fitted to a misaligned patch, absorb
+  part of the misalignment, and from a few pixels off on a small smooth
+  template its steps stalled where MI still rose towards the alignment
+  (regions TRACKED 5–10 px off); two coefficients cannot absorb it.  The
+  remap then removes the bias a gain and bias leave under a nonlinear
+  intensity change (a gamma: 0.06 px).  Per-bin mean intensities, the
+  earliest fit, are biased wherever the template's histogram is uneven
+  (benchmarks/README.md, issue 18: status precision);
 * "ncc": T̃ = a·T + b, the least-squares gain and bias;
 * "ssd": T̃ = T.
 
@@ -44,7 +50,7 @@ _MAX_REJECTED, _NOISE = 3, 4.0
 _INVALID_SHARE = 1e-3
 
 
-def adapted_coefficients(similarity: str, stats, per_bin=None):
+def adapted_coefficients(similarity: str, stats, per_bin=None, linear=False):
   """c with T̃ = X·c: X the template's bin weights (bins,) per point for "mi", else [T, 1].
 
   Args:
@@ -54,6 +60,8 @@ def adapted_coefficients(similarity: str, stats, per_bin=None):
       intensity summed per template bin over the valid points (m) and the
       bins' weights, the set's `template.Template.remap` (bins, bins) and
       () its number of points.
+    linear: "mi": () bool, fit the gain and bias (c = a·k + b over the bin
+      indices k) instead of the remap.
   """
   if similarity == "mi":
     sums, counts, inverse, size = per_bin
@@ -64,7 +72,8 @@ def adapted_coefficients(similarity: str, stats, per_bin=None):
     # points' and c is each bin's mean intensity, a pseudo-count of one pixel
     # at the mean keeping empty bins finite.
     everywhere = jnp.sum(counts) >= (1.0 - _INVALID_SHARE) * size  # Σ_b β_b = 1 per point
-    return jnp.where(everywhere, inverse @ (sums + mean), (sums + mean) / (counts + 1.0))
+    remap = jnp.where(everywhere, inverse @ (sums + mean), (sums + mean) / (counts + 1.0))
+    return jnp.where(linear, _gain_and_bias(sums, counts), remap)
   if similarity == "ncc":
     _, mean_t, mean_i, var_t, _, cov = measures.ncc_moments(stats)
     gain = jnp.where(var_t > 1e-12, cov / jnp.where(var_t > 1e-12, var_t, 1.0), 0.0)
@@ -72,7 +81,25 @@ def adapted_coefficients(similarity: str, stats, per_bin=None):
   return jnp.asarray([1.0, 0.0], jnp.float32)
 
 
-def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, tolerance):
+def _gain_and_bias(sums, counts):
+  """(bins,) c = a·k + b: I ≈ a·s + b by least squares, s the template's value in bin units.
+
+  The cubic B-spline bins reproduce s and s² + 1/3 (Σ_k k β_k(s) = s,
+  Σ_k k² β_k(s) = s² + 1/3), so the moments of s come from the per-bin
+  sums alone: Σ s = k·counts, Σ s² = k²·counts − n/3, Σ s·I = k·sums.
+  A flat template (no variance) gets a = 0, T̃ the mean.
+  """
+  k = jnp.arange(counts.shape[0], dtype=counts.dtype)
+  n = jnp.maximum(jnp.sum(counts), 1.0)
+  s, ss, si, i = k @ counts, (k * k) @ counts - n / 3.0, k @ sums, jnp.sum(sums)
+  spread = n * ss - s * s  # n² var(s)
+  informative = spread > 1e-6 * n * n
+  gain = jnp.where(informative, (n * si - s * i) / jnp.where(informative, spread, 1.0), 0.0)
+  return gain * k + (i - gain * s) / n
+
+
+def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, tolerance,
+                        first=False, second=True):
   """Damped Gauss–Newton steps, each accepted only if it lowers the loss.
 
   A rejected step grows the damping (to at least `_DAMPING` × `_GROW`) and
@@ -81,13 +108,17 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
 
   Args:
     u0: (D,) starting parameters.
-    linearise: u → (loss (), JᵀJ (D, D), Jᵀr (D,)) at u.
+    linearise: (u, first) → (loss (), JᵀJ (D, D), Jᵀr (D,)) at u; `first`
+      () bool: the first phase's photometric model, else the second's.
     loss_at: u → () loss (the final step's, which is not linearised).
     steps: () int32 linearisations at most; fewer once a step moves no
       parameter by more than `tolerance` or after `_MAX_REJECTED` rejected
       steps in a row.
     tolerance: () stop threshold, in units of u (a rejected step under
       `_NOISE` × tolerance stops too).
+    first: () bool: begin with the first phase.
+    second: () bool: where the first phase would stop, the second begins
+      (damping and rejections reset), within the same `steps`.
 
   Returns:
     ((D,) the lowest-loss parameters visited, () that loss, () int32 loss
@@ -96,8 +127,8 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
   d = u0.shape[0]
 
   def body(carry):
-    step, u, best_u, best_loss, normal, gradient, damping, rejected, _, _ = carry
-    loss, a, g = linearise(u)
+    step, u, best_u, best_loss, normal, gradient, damping, rejected, _, _, first = carry
+    loss, a, g = linearise(u, first)
     better = loss < best_loss
     settled = ~better & (jnp.max(jnp.abs(u - best_u)) <= _NOISE * tolerance)
     best_u = jnp.where(better, u, best_u)
@@ -110,19 +141,23 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
     lhs = normal + jnp.diag(damping * diagonal + 1e-9 * (1.0 + jnp.max(diagonal)))
     delta = jnp.linalg.solve(lhs, -gradient)
     delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
+    stop = (jnp.max(jnp.abs(delta)) <= tolerance) | (rejected >= _MAX_REJECTED) | settled
+    switch = first & stop & second
+    # The second phase starts afresh from the best estimate, one step on.
+    damping = jnp.where(switch, _DAMPING, damping)
+    rejected = jnp.where(switch, 0, rejected)
     return (step + 1, best_u + delta, best_u, best_loss, normal, gradient, damping, rejected,
-            delta, settled)
+            settled & ~switch, stop & ~switch, first & ~switch)
 
   def running(carry):
-    step, *_, rejected, delta, settled = carry
-    return ((step < steps) & (jnp.max(jnp.abs(delta)) > tolerance) & (rejected < _MAX_REJECTED)
-            & ~settled)
+    step, *_, done, _ = carry
+    return (step < steps) & ~done
 
   zero = jnp.zeros(d, u0.dtype)
   carry = (jnp.zeros([], jnp.int32), u0, u0, jnp.asarray(jnp.inf, u0.dtype),
            jnp.eye(d, dtype=u0.dtype), zero, jnp.asarray(_DAMPING, u0.dtype),
-           jnp.zeros([], jnp.int32), zero + jnp.inf, jnp.asarray(False))
-  taken, u, best_u, best_loss, *_, settled = jax.lax.while_loop(running, body, carry)
+           jnp.zeros([], jnp.int32), jnp.asarray(False), jnp.asarray(False), jnp.asarray(first))
+  taken, u, best_u, best_loss, *_, settled, _, _ = jax.lax.while_loop(running, body, carry)
   # The last step, unless the loop settled (its loss could not resolve it).
   # Computed either way: a `cond` on a per-element flag would, under `vmap`,
   # copy everything its branches close over (the image) per element.

@@ -77,10 +77,9 @@ class Template(NamedTuple):
     self_loss: (3,) float32 the template's loss against itself under "mi"
       (binned over `value_range` with `bins` bins), "ncc" and "ssd" (its
       variance): `quality`'s scale.
-    remap: (MAX_LEVELS, bins, bins) float32 per level set, (XᵀX + I)⁻¹ of
-      its points' MI bin weights X: MI's Gauss–Newton fits the adapted
-      template T̃ = X·c by least squares (`refine.adapted_coefficients`);
-      identities past `levels`.
+    remap: (bins, bins) float32 (XᵀX + I)⁻¹ of level 0's set's MI bin
+      weights X: at level 0, MI's Gauss–Newton ends fitting the adapted
+      template T̃ = X·c by least squares (`refine.adapted_coefficients`).
   """
   points: jax.Array
   values: jax.Array
@@ -179,17 +178,10 @@ def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.n
   return np.array([-mi, -1.0 if textured else 0.0, variance], np.float32)
 
 
-def remaps(level_values: list, bins: int, value_range_: np.ndarray) -> np.ndarray:
-  """(MAX_LEVELS, bins, bins) float32 `Template.remap` of each level set's intensities (n_l,)."""
-  eye = np.eye(bins)
-  out = np.broadcast_to(eye, (atlas.MAX_LEVELS, bins, bins)).copy()
-  dense = _bin_dense(np.concatenate(level_values), bins, value_range_)  # one pass for every level
-  ends = np.cumsum([v.size for v in level_values])
-  for index, (start, end) in enumerate(zip(np.r_[0, ends[:-1]], ends)):
-    part = dense[start:end]
-    gram = (part.T @ part)[:bins, :bins]
-    out[index] = np.linalg.inv(gram + eye)
-  return out.astype(np.float32)
+def remap(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
+  """(bins, bins) float32 `Template.remap` of a set's intensities (n,)."""
+  dense = _bin_dense(values, bins, value_range_)
+  return np.linalg.inv((dense.T @ dense)[:bins, :bins] + np.eye(bins)).astype(np.float32)
 
 
 def prepare(template: np.ndarray, levels: int, pixels: float, bins: int,
@@ -228,10 +220,10 @@ def prepare(template: np.ndarray, levels: int, pixels: float, bins: int,
     sets[index] = offset, flat.size
   full = chosen[FULL][0].reshape(-1)[chosen[FULL][1]].astype(np.float64)
   value_range_ = value_range(full)
-  level_values = [values[offset:offset + count].astype(np.float64) for offset, count in sets[:levels]]
+  finest = values[sets[0, 0]:sets[0, 0] + sets[0, 1]].astype(np.float64)
   return Template(points, values, sets, np.int32(levels), np.asarray(template.shape, np.float32),
                   value_range_, self_losses(full, bins, value_range_),
-                  remaps(level_values, bins, value_range_))
+                  remap(finest, bins, value_range_))
 
 
 # `prepared` keeps the last few prepared templates: aligning one template
