@@ -91,7 +91,9 @@ class TrackConfig:
       swarm should not run on every frame for it (benchmarks/video.py).
       `align` refines a start that falls short once more from the coarsest
       level before it runs the swarm, which then runs in far fewer trials
-      (benchmarks/README.md, TrackConfig's defaults).
+      (benchmarks/README.md, TrackConfig's defaults), and accepts it where
+      both refinements agree within 1 px on a quality of at least 0.8
+      (under image noise the right alignment's quality stays under 0.95).
     resolution (int | None): points each of the template's sets holds at
       most (a pixel budget; static).  A template level with more keeps those
       of largest gradient, and the full-resolution loss and `quality` a

@@ -121,8 +121,9 @@ class Stage:
 
 ALIGN = (Stage(), Stage(top=1), Stage(swarm=True, top=2),
          Stage(swarm=True, finer=True, wide=True, top=2))
-"""`align`'s stages: the start, a coarser start, the search, the retry one level finer
-(run again with other seeds, up to `TrackConfig.retries` times, while it disagrees with the best)."""
+"""`align`'s stages: the start, a coarser start (accepted also where it agrees with the start),
+the search, the retry one level finer (run again with other seeds, up to
+`TrackConfig.retries` times, while it disagrees with the best)."""
 TRACK = (Stage(), Stage(top=1), Stage(swarm=True, top=2), Stage(base=1),
          Stage(swarm=True, wide=True, widen=True, translation=True, top=2, base=1))
 """`track`'s stages: the start, a coarser start, the search, then the recovery from the last good estimate."""
@@ -219,9 +220,13 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
   stage, done = state.stage, len(ALIGN)
   starting = stage <= 1
   merged, start, coarse_next = _starts(state, found, contexts, knobs)
-  accepted = start.quality >= knobs.accept_quality
   gap = jax.vmap(corner_gap)(found.homography, state.best.homography, contexts.template.size)
   agree = gap <= _AGREE_PX
+  # The coarser start confirms the start where both refinements agree on a
+  # match of at least _MIN_REFERENCE (noise lowers a right alignment's
+  # quality under accept_quality, and the swarm would run for nothing).
+  accepted = ((start.quality >= knobs.accept_quality)
+              | ((stage == 1) & agree & (start.quality >= _MIN_REFERENCE)))
   searched = better(found, state.best)._replace(confirmed=agree)
   settled = (searched.quality >= knobs.retry_quality) | agree
   again = ((stage == 3) & (merged.quality < knobs.retry_quality) & ~agree
