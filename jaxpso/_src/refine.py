@@ -16,7 +16,8 @@ maximised, so the refinement keeps its invariances:
   template its steps stalled where MI still rose towards the alignment
   (regions TRACKED 5–10 px off); two coefficients cannot absorb it.  The
   remap then removes the bias a gain and bias leave under a nonlinear
-  intensity change (a gamma: 0.06 px).  Per-bin mean intensities, the
+  intensity change (gamma 0.5: median 0.05–0.08 px, the Baker–Matthews
+  trials of convergence.py).  Per-bin mean intensities, the
   earliest fit, are biased wherever the template's histogram is uneven
   (benchmarks/README.md, issue 18: status precision);
 * "ncc": T̃ = a·T + b, the least-squares gain and bias;
@@ -48,8 +49,8 @@ _MAX_REJECTED, _NOISE = 3, 4.0
 # The second phase begins once the first phase's steps move no parameter by
 # more than _SWITCH × the tolerance (or where it would stop): closer, its
 # gain and bias only spend steps converging to their own fixed point
-# (convergence.py, none and gamma: 0.5–1 step fewer, the gamma error 0.02–0.04
-# instead of 0.02–0.05 px).
+# (convergence.py, none and gamma: 0.5–1 step fewer, the median gamma error
+# 0.016–0.040 px per σ instead of 0.019–0.049).
 _SWITCH = 10.0
 # MI's adapted template is fitted by least squares while at most this share
 # of the set's points is invalid (outside the image), else by bin means.
