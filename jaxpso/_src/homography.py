@@ -196,9 +196,13 @@ def rect_corners(shape) -> jax.Array:
   Returns:
     (4, 2) corner coordinates (x, y), default float dtype.
   """
-  h, w = check_shape2d(shape, "shape")
-  corners = np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
-  return jnp.asarray(corners, dtype=float)
+  return jnp.asarray(host_rect_corners(check_shape2d(shape, "shape")), dtype=float)
+
+
+def host_rect_corners(shape) -> np.ndarray:
+  """`rect_corners` of an (h, w) template as (4, 2) float64 NumPy, unchecked (host-side set-up)."""
+  rows, cols = shape
+  return np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]], np.float64)
 
 
 def apply_to_points(h, points) -> tuple[jax.Array, jax.Array]:

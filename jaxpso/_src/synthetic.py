@@ -21,6 +21,7 @@ import numpy as np
 
 from jaxpso._src import checks
 from jaxpso._src import data
+from jaxpso._src import homography
 from jaxpso._src import plane
 from jaxpso._src import sampling
 
@@ -223,7 +224,7 @@ def make_sequence(seed: int = 0, *, num_frames: int = 100, frame_shape=(240, 320
   x0, y0 = (width - w) // 2, (height - h) // 2
   truth = frame0_to_frame @ np.array([[1.0, 0, x0], [0, 1, y0], [0, 0, 1]])
   truth /= truth[:, 2:3, 2:3]
-  rect = np.array([[0, 0, 1], [w - 1, 0, 1], [w - 1, h - 1, 1], [0, h - 1, 1]], np.float64)
+  rect = np.c_[homography.host_rect_corners((h, w)), np.ones(4)]
   mapped = rect @ np.swapaxes(truth, -1, -2)  # (T, 4, 3)
   corners = mapped[..., :2] / mapped[..., 2:]
 

@@ -227,8 +227,7 @@ def _starts(regions: list) -> np.ndarray:
   `regions`: R (corners (4, 2), (rows, cols)) pairs.  On the host: as eager
   JAX operations they compiled some thirty small programs in every process.
   """
-  rects = np.array([[[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]]
-                    for _, (rows, cols) in regions], np.float64)
+  rects = np.stack([homography.host_rect_corners(shape) for _, shape in regions])
   corners = np.stack([c for c, _ in regions]).astype(np.float64)
   return homography.host_homography_from_corners(rects, corners).astype(np.float32)
 
@@ -379,8 +378,8 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
   stacked["score"][:, 0] = 0.0 if config.similarity == "ssd" else -self_loss
   own = stacked["homography"].astype(np.float64)
   own = own / own[..., 2:, 2:]
-  rects = np.stack([np.c_[np.array([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]], np.float64),
-                          np.ones(4)] for h, w in shapes])  # (R, 4, 3)
+  rects = np.stack([np.c_[homography.host_rect_corners(shape), np.ones(4)]
+                    for shape in shapes])  # (R, 4, 3)
   mapped = own @ np.swapaxes(rects, -1, -2)[:, None]  # (R, T, 3, 4)
   corners = np.swapaxes(mapped[..., :2, :] / mapped[..., 2:, :], -1, -2)
   result = TrackResult(

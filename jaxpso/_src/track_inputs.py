@@ -14,6 +14,7 @@ import itertools
 import jax
 import numpy as np
 
+from jaxpso._src import homography
 from jaxpso._src import motion
 
 
@@ -102,7 +103,7 @@ def template(frame: np.ndarray, corners: np.ndarray, shape) -> np.ndarray:
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
 
   rows, cols = shape
-  rect = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]], np.float64)
+  rect = homography.host_rect_corners(shape)
   if np.array_equal(corners - corners[0], rect) and np.all(corners[0] == np.round(corners[0])):
     x, y = int(corners[0, 0]), int(corners[0, 1])
     return np.ascontiguousarray(frame[y:y + rows, x:x + cols])
