@@ -65,8 +65,8 @@ def adapted_coefficients(similarity: str, stats, per_bin=None, linear=False):
     stats: the "ncc" statistics over the valid points (`measures`).
     per_bin: "mi": (bins,) Σ m·I·β(T) and (bins,) Σ m·β(T), the image's
       intensity summed per template bin over the valid points (m) and the
-      bins' weights, the set's `template.Template.remap` (bins, bins) and
-      () its number of points.
+      bins' weights, `template.Template.remap` (bins, bins: level 0's set,
+      the one the remap is fitted on) and () the set's number of points.
     linear: "mi": () bool, fit the gain and bias (c = a·k + b over the bin
       indices k) instead of the remap.
   """
@@ -149,8 +149,9 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
     lhs = normal + jnp.diag(damping * diagonal + 1e-9 * (1.0 + jnp.max(diagonal)))
     delta = jnp.linalg.solve(lhs, -gradient)
     delta = jnp.where(jnp.all(jnp.isfinite(delta)), delta, 0.0)
-    stop = (jnp.max(jnp.abs(delta)) <= tolerance) | (rejected >= _MAX_REJECTED) | settled
-    switch = first & (stop | (jnp.max(jnp.abs(delta)) <= _SWITCH * tolerance)) & second
+    moved = jnp.max(jnp.abs(delta))
+    stop = (moved <= tolerance) | (rejected >= _MAX_REJECTED) | settled
+    switch = first & (stop | (moved <= _SWITCH * tolerance)) & second
     # The second phase starts afresh from the best estimate, one step on.
     damping = jnp.where(switch, _DAMPING, damping)
     rejected = jnp.where(switch, 0, rejected)
