@@ -90,6 +90,10 @@ def build(image: np.ndarray, levels: int, size: int | None = None) -> Atlas:
     table[index] = offset, level.shape[1], level.shape[0]
     offset += level.size
   table[len(pyramid):] = table[len(pyramid) - 1]
+  # Read-only: the CPU client then hands the buffer to a program without
+  # copying it (the copy of a 1 MiB atlas cost 0.06–0.17 ms per call).
+  pixels.setflags(write=False)
+  table.setflags(write=False)
   return Atlas(pixels, table)
 
 

@@ -40,10 +40,18 @@ def elements(value, batched: bool, name: str) -> list:
 
 
 def stack(trees: list):
-  """A list of equally structured NumPy pytrees → one with a leading axis (a view for one tree)."""
+  """A list of equally structured NumPy pytrees → one with a leading axis (a view for one tree).
+
+  The leaves are read-only (`atlas`: the program then reads them without a copy).
+  """
   if len(trees) == 1:
-    return jax.tree.map(lambda leaf: np.asarray(leaf)[None], trees[0])
-  return jax.tree.map(lambda *leaves: np.stack(leaves), *trees)
+    return jax.tree.map(lambda leaf: _read_only(np.asarray(leaf)[None]), trees[0])
+  return jax.tree.map(lambda *leaves: _read_only(np.stack(leaves)), *trees)
+
+
+def _read_only(array: np.ndarray) -> np.ndarray:
+  array.setflags(write=False)
+  return array
 
 
 def element_seeds(key, count: int) -> np.ndarray:
