@@ -293,6 +293,27 @@ def test_gaussian_pyramid_matches_opencv():
   assert len(_pyramid(_CAMERA, 1)) == 1
 
 
+def test_atlas_holds_the_pyramid_read_only():
+  # The atlas is read-only so that the CPU client hands it to a program
+  # without copying it; its levels are OpenCV's pyramid, level after level.
+  from jaxpso._src import atlas
+  from jaxpso._src import batching
+  image = np.ascontiguousarray(_CAMERA[:90, :70])
+  built = atlas.build(image, 3)
+  assert not built.pixels.flags.writeable and not built.levels.flags.writeable
+  expected = image
+  for index in range(3):
+    offset, width, height = built.levels[index]
+    assert (height, width) == expected.shape
+    np.testing.assert_array_equal(built.pixels[offset:offset + width * height].reshape(height, width),
+                                  expected)
+    expected = cv2.pyrDown(expected)
+  np.testing.assert_array_equal(built.levels[3:], np.repeat(built.levels[2:3], 3, axis=0))
+  for stacked in (batching.stack([built]), batching.stack([built, built])):
+    assert not any(leaf.flags.writeable for leaf in stacked)
+    np.testing.assert_array_equal(stacked.pixels[-1], built.pixels)
+
+
 def _pyramid_shapes(shape, levels):
   shapes = [tuple(shape)]
   for _ in range(levels - 1):
