@@ -3,8 +3,8 @@
 A batch of N alignments or R regions is one compiled program over a leading
 axis: its arguments arrive as lists (`elements`), are prepared element by
 element and stacked (`stack`), each element gets its own swarm seed
-(`element_seeds`), and an unbatched call reads element 0 of the result
-(`first`).
+(`element_seeds`); an unbatched call is a batch of one whose program
+returns element 0 (`align._result`).
 
 In the program, a batch is a pytree with that leading axis on every leaf,
 except an `atlas.Atlas` with 1-D pixels, which the batch shares (`track`'s
@@ -62,10 +62,6 @@ def element_seeds(key, count: int) -> np.ndarray:
   seed = np.asarray(swarm_random._as_seed(key))
   offsets = np.arange(count, dtype=np.uint32) * np.uint32(0x9E3779B9)  # wraps modulo 2³²
   return np.stack([np.full(count, seed[0]), seed[1] + offsets], axis=-1)
-
-
-# Element 0 of every field as one call (indexing each field eagerly is one dispatch per field).
-first = jax.jit(lambda tree: jax.tree.map(lambda a: a[0], tree))
 
 
 # ------------------------------------------------------------ in the program
