@@ -148,6 +148,41 @@ def test_where_needed_computes_exactly_the_needing_elements(size):
     np.testing.assert_array_equal(computed, mask)
 
 
+@pytest.mark.parametrize("size", [5, batching.GROUP, batching.GROUP + 1, 3 * batching.GROUP + 2])
+def test_in_groups_runs_each_element_once_in_groups_of_at_most_group(size):
+  # A per-element loop of i + 1 steps: every element's result as alone, from
+  # groups no wider than GROUP (the width each call of fn saw, per element).
+  def fn(values, offsets):
+    def loop(v, o):
+      return jax.lax.while_loop(lambda c: c[0] < v, lambda c: (c[0] + 1, c[1] + o), (0.0, 0.0))[1]
+    width = jnp.full(values.shape[0], values.shape[0], jnp.int32)
+    return jax.vmap(loop)(values, offsets), width
+
+  values = jnp.arange(size, dtype=jnp.float32) + 1.0
+  offsets = jnp.arange(size, dtype=jnp.float32) * 0.5
+  sums, width = jax.jit(lambda v, o: batching.in_groups(fn, v, o))(values, offsets)
+  np.testing.assert_array_equal(sums, np.arange(1, size + 1) * np.arange(size) * 0.5)
+  assert width.shape == (size,) and width.max() <= batching.GROUP
+  groups = -(-size // batching.GROUP)
+  np.testing.assert_array_equal(width, -(-size // groups))
+
+
+def test_a_batch_wider_than_a_group_tracks_each_region_as_alone():
+  # GROUP + 1 regions: the first stage runs in two groups (one padded).
+  sequence = _sequence(0)
+  x, y, w, h = sequence.roi
+  shifts = [(dx, dy) for dx in (-4, 0, 4) for dy in (-3, 0, 3)]
+  rois = np.array([(x + dx, y + dy, w, h) for dx, dy in (shifts * 2)[:batching.GROUP + 1]])
+  batch = jaxpso.track(sequence.frames, rois, config=CONFIG, key=0)
+  alone = _alone(sequence, rois[0], key=0)
+  np.testing.assert_allclose(batch.corners[0], alone.corners, atol=1e-3)
+  for r, roi in enumerate(rois):
+    truth = _true_corners(sequence, _box_corners(roi))
+    error = np.sqrt(np.mean(np.sum((batch.corners[r] - truth) ** 2, axis=-1), axis=-1))
+    assert error.max() < 1.0, (r, error)
+  assert np.all(batch.status == jaxpso.TrackStatus.TRACKED)
+
+
 # --- align ------------------------------------------------------------------------------------
 
 IMAGE = load_image("camera")

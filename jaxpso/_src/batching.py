@@ -10,7 +10,8 @@ In the program, a batch is a pytree with that leading axis on every leaf,
 except an `atlas.Atlas` with 1-D pixels, which the batch shares (`track`'s
 frame: one image for every region) and which is neither mapped nor
 indexed.  `each` maps an unbatched function (`problem.Problem`'s steps)
-over the elements, `select` and `take` pick per element, and `where_needed`
+over the elements, `in_groups` runs a batched one a group of elements at a
+time on a CPU, `select` and `take` pick per element, and `where_needed`
 runs a computation only for the elements that need it: under `vmap` a
 per-element `lax.cond` runs both branches for every element (and a
 `while_loop` with a per-element condition becomes selects over its whole
@@ -92,6 +93,35 @@ def each(fn: Callable, *args):
   if count != 1:
     return jax.vmap(fn, in_axes=_axes(args))(*args)
   return jax.tree.map(lambda a: a[None], fn(*_mapped(lambda a: a[0], args)))
+
+
+# `in_groups`'s largest group on a CPU.  Sweep (R = 16 / 64 / 256 regions of
+# 48×48, 20 frames, 2 rounds; benchmarks/README.md, batch): groups of 8, 16
+# or 32 all ran at 0.72–0.89 ms per region-frame, groups of 4 at 0.79–0.91,
+# the whole batch at once 0.93–0.97 (R = 64) and 1.12–1.36 (R = 256).  16
+# leaves every batch of up to 16 as it was.
+GROUP = 16
+
+
+def in_groups(fn: Callable, *args):
+  """`fn(*args)` for a batch, on a CPU in sequential groups of at most `GROUP` elements.
+
+  `fn` maps batched pytrees (leading axis R; a shared `atlas.Atlas` as it
+  is) to batched pytrees.  Under `vmap` every `while_loop` runs until the
+  batch's slowest element is done, as selects over the whole batch's carry;
+  in groups each stops at its own group's slowest, over a carry that stays
+  in the cache.  The R elements are split into ceil(R / GROUP) groups of
+  equal size (the last padded with copies of element R − 1, whose results
+  are dropped).  On accelerators, whose lanes run in parallel: `fn(*args)`.
+  """
+  count = next(a.shape[0] for a in jax.tree.leaves(args, is_leaf=_shared) if not _shared(a))
+  if count <= GROUP or jax.default_backend() != "cpu":
+    return fn(*args)
+  groups = -(-count // GROUP)
+  size = -(-count // groups)
+  indices = jnp.minimum(jnp.arange(groups * size), count - 1).reshape(groups, size)
+  found = jax.lax.map(lambda group: fn(*take(args, group)), indices)
+  return jax.tree.map(lambda a: a.reshape((groups * size,) + a.shape[2:])[:count], found)
 
 
 def select(mask, first, second):

@@ -300,16 +300,21 @@ def run(contexts: problems.Context, knobs: problems.Knobs, pipeline: str, config
   """The stages of `pipeline` ("align" or "track") for a batch of registrations (leading axis R, static).
 
   A batch of one runs the stage loop alone.  A larger batch runs the first
-  stage for every element at once, then the loop only for the elements it
-  left short (`batching.where_needed`), a few at a time.
+  stage for every element at once (on a CPU a group at a time,
+  `batching.in_groups`), then the loop only for the elements it left short
+  (`batching.where_needed`), a few at a time.
   """
   count = contexts.seed.shape[0]
   state = _initial(count, config)
   if count == 1 or config.method != "pso":
     return _loop(contexts, state, knobs, pipeline, config)
   stages, advance = PIPELINES[pipeline]
-  state = advance(state, _pass(contexts, state, knobs, stages, config, swarm=False), contexts,
-                  knobs)
+
+  def first(contexts, state):
+    return advance(state, _pass(contexts, state, knobs, stages, config, swarm=False), contexts,
+                   knobs)
+
+  state = batching.in_groups(first, contexts, state)
   return batching.where_needed(
       state.stage < len(stages),
       lambda indices: _loop(batching.take(contexts, indices), batching.take(state, indices), knobs,
