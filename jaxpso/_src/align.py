@@ -91,20 +91,21 @@ def _result(found: problems.Candidate, bases, geometry, offsets, config, single)
   return jax.tree.map(lambda a: a[0], result) if single else result
 
 
-@functools.partial(programs.Program, static_argnames=("config", "single"))
+@functools.partial(programs.Program, static_argnames=("config", "single", "grouped"))
 def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, seeds, offsets,
-           knobs: problems.Knobs, *, config: TrackConfig, single: bool = False) -> AlignResult:
+           knobs: problems.Knobs, *, config: TrackConfig, single: bool = False,
+           grouped: bool = True) -> AlignResult:
   """`align` of a batch of N: every argument has the leading N axis (knobs excepted).
 
   images: the `atlas.Atlas` of each image's window, whose top-left pixel is
   at `offsets` (N, 2) in the image; bases (N, 2, 3, 3) the start in window
   coordinates twice (or (N, 2, 4, 4) identity poses, with `geometry` the
   `motion.Plane`s in window coordinates); seeds (N, 2) uint32.  With
-  `single` (N = 1), the result without the N axis.
+  `single` (N = 1), the result without the N axis; `grouped`: `register.run`'s.
   """
   contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
                            geometry, seeds)
-  found = register.run(contexts, knobs, "align", config).best
+  found = register.run(contexts, knobs, "align", config, grouped).best
   return _result(found, bases, geometry, offsets, config, single)
 
 
@@ -212,7 +213,8 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
   knobs = config.knobs()
   single = not batched  # a batch of one on one device (`sharding.batch_mesh`)
   if config.method == "pso":
-    result = _align(*arguments, knobs, config=statics, single=single)
+    result = _align(*arguments, knobs, config=statics, single=single,
+                    grouped=sharding.on_one_device(mesh))
   else:
     levels = baselines.template_pyramids(templates_, configs[0].levels)
     result = _align_baseline(arguments[0], sharding.split(levels, mesh) if mesh else levels,

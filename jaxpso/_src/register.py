@@ -296,13 +296,16 @@ def _loop(contexts: problems.Context, state: State, knobs: problems.Knobs, pipel
   return jax.lax.while_loop(lambda s: jnp.any(s.stage < len(stages)), body, state)
 
 
-def run(contexts: problems.Context, knobs: problems.Knobs, pipeline: str, config) -> State:
+def run(contexts: problems.Context, knobs: problems.Knobs, pipeline: str, config,
+        grouped: bool = True) -> State:
   """The stages of `pipeline` ("align" or "track") for a batch of registrations (leading axis R, static).
 
   A batch of one runs the stage loop alone.  A larger batch runs the first
-  stage for every element at once (on a CPU a group at a time,
-  `batching.in_groups`), then the loop only for the elements it left short
-  (`batching.where_needed`), a few at a time.
+  stage for every element at once (with `grouped`, static, on a CPU a group
+  at a time, `batching.in_groups`: not for a batch split over several
+  devices, where a group would gather elements across them), then the loop
+  only for the elements it left short (`batching.where_needed`), a few at a
+  time.
   """
   count = contexts.seed.shape[0]
   state = _initial(count, config)
@@ -314,7 +317,7 @@ def run(contexts: problems.Context, knobs: problems.Knobs, pipeline: str, config
     return advance(state, _pass(contexts, state, knobs, stages, config, swarm=False), contexts,
                    knobs)
 
-  state = batching.in_groups(first, contexts, state)
+  state = batching.in_groups(first, contexts, state) if grouped else first(contexts, state)
   return batching.where_needed(
       state.stage < len(stages),
       lambda indices: _loop(batching.take(contexts, indices), batching.take(state, indices), knobs,

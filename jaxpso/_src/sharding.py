@@ -21,6 +21,11 @@ from jax.sharding import PartitionSpec
 AXIS = "batch"
 
 
+def on_one_device(mesh: Mesh | None) -> bool:
+  """Whether a batch placed by `batch_mesh`'s `mesh` stays on one device."""
+  return mesh is None or mesh.devices.size == 1
+
+
 def batch_mesh(devices, size: int) -> Mesh | None:
   """The 1-D mesh a batch of `size` elements is split over, or None to leave placement alone.
 

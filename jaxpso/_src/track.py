@@ -148,11 +148,11 @@ def _predict(contexts: problems.Context, knobs, config):
                            image_ranges=fall_back(contexts.image_ranges))
 
 
-@functools.partial(programs.Program, static_argnames=("config",))
+@functools.partial(programs.Program, static_argnames=("config", "grouped"))
 def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs: problems.Knobs,
-                *, config: TrackConfig):
+                *, config: TrackConfig, grouped: bool = True):
   """One frame of R regions: (carry, the frame's atlas, shared (1-D pixels) or one per region) →
-  (carry, per-frame outputs, each with the leading R)."""
+  (carry, per-frame outputs, each with the leading R); `grouped`: `register.run`'s."""
   seeds = jax.vmap(_frame_seed)(constants.seed, carry.frame)
   predicted = jnp.where(knobs.predict, _damped(carry.velocity) @ carry.estimate, carry.estimate)
   bases = jnp.stack([predicted, carry.estimate], axis=1)
@@ -163,7 +163,7 @@ def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs:
   contexts = jax.lax.cond(knobs.predict, lambda c: _predict(c, knobs, config), lambda c: c,
                           contexts)
   if config.method == "pso":
-    state = register.run(contexts, knobs, "track", config)
+    state = register.run(contexts, knobs, "track", config, grouped)
     found, recovered, searched = state.best, state.recovered, state.searched
   else:
     found = batching.each(lambda c, p: register.baseline(c, p, knobs, config), contexts,
@@ -361,7 +361,8 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
                              mesh)
     else:
       image = sharding.replicate(atlas.build(images[0], levels, capacity), mesh)
-    carry, out = _frame_step(carry, image, constants, knobs, config=statics)
+    carry, out = _frame_step(carry, image, constants, knobs, config=statics,
+                             grouped=sharding.on_one_device(mesh))
     outputs.append(out)
     if len(outputs) == _HOST_CHUNK:
       chunks.append(_to_host(outputs))
