@@ -131,8 +131,8 @@ def test_costly_searches_run_for_the_batch_only_when_a_region_needs_them():
 @pytest.mark.parametrize("size", [1, 5, 17, 70])
 def test_where_needed_computes_exactly_the_needing_elements(size):
   # compute() marks what it was asked for; every needing element is
-  # computed once, no other element is written, in ceil(R / 32)-sized rounds on a CPU
-  # (70: rounds of 3, the last padded).
+  # computed once, no other element is written, in rounds of
+  # `batching._capacity(R)` elements (one on a CPU), the last padded.
   values = jnp.arange(size, dtype=jnp.float32)
 
   @jax.jit
