@@ -96,7 +96,7 @@ def each(fn: Callable, *args):
 
 
 # `in_groups`'s largest group on a CPU.  Sweep (R = 16 / 64 / 256 regions of
-# 48×48, 20 frames, 2 rounds; benchmarks/README.md, batch): groups of 8, 16
+# 48×48, 20 frames, 2 rounds; benchmarks/README.md, session 10): groups of 8, 16
 # or 32 all ran at 0.72–0.89 ms per region-frame, groups of 4 at 0.79–0.91,
 # the whole batch at once 0.93–0.97 (R = 64) and 1.12–1.36 (R = 256).  16
 # leaves every batch of up to 16 as it was.
