@@ -44,6 +44,7 @@ TRIALS = 200
 
 def _align_rows():
   import cv2
+  import convergence  # its corner error
   import jaxpso
 
   image = np.asarray(jaxpso.data.load_image("camera"), np.float32)
@@ -52,10 +53,6 @@ def _align_rows():
   criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
   jaxpso.align(image, image[100:200, 100:200], np.float32([[1, 0, 101], [0, 1, 99], [0, 0, 1]]),
                config=config)
-
-  def error(h, x, y):  # corner RMS error (px) of a template → image homography
-    corners = cv2.perspectiveTransform(square[None], np.asarray(h, np.float64))[0]
-    return float(np.sqrt(np.mean(np.sum((corners - square - [x, y]) ** 2, -1))))
 
   rows = []
   for sigma in SIGMAS:
@@ -77,8 +74,8 @@ def _align_rows():
       except cv2.error:
         pass
       ecc.append(time.perf_counter() - begin)
-      off.append(error(found, x, y) > 1.0)
-      ecc_off.append(error(warp, x, y) > 1.0)
+      off.append(convergence.corner_error(found, np.array([x, y])) > 1.0)
+      ecc_off.append(convergence.corner_error(warp, np.array([x, y])) > 1.0)
     rows.append({"call": f"align MI σ = {sigma:g} px, × ECC's median",
                  "value": float(np.median(ours) / np.median(ecc)),
                  "detail": f"{np.median(ours) * 1e3:.1f} vs {np.median(ecc) * 1e3:.1f} ms;"

@@ -76,6 +76,11 @@ def _axes(tree):
   return jax.tree.map(lambda node: None if _shared(node) else 0, tree, is_leaf=_shared)
 
 
+def _size(args) -> int:
+  """The batch size R of batched pytrees: the leading axis of any leaf outside a shared `atlas.Atlas`."""
+  return next(a.shape[0] for a in jax.tree.leaves(args, is_leaf=_shared) if not _shared(a))
+
+
 def _mapped(fn, tree):
   """`fn` on every leaf of `tree` but a shared `atlas.Atlas`'s."""
   return jax.tree.map(lambda node: node if _shared(node) else fn(node), tree, is_leaf=_shared)
@@ -89,7 +94,7 @@ def each(fn: Callable, *args):
   loop of selects over its whole carry (and a `cond` runs both branches):
   for one element that only cost compilation time and run time.
   """
-  count = next(a.shape[0] for a in jax.tree.leaves(args, is_leaf=_shared) if not _shared(a))
+  count = _size(args)
   if count != 1:
     return jax.vmap(fn, in_axes=_axes(args))(*args)
   return jax.tree.map(lambda a: a[None], fn(*_mapped(lambda a: a[0], args)))
@@ -114,7 +119,7 @@ def in_groups(fn: Callable, *args):
   equal size (the last padded with copies of element R − 1, whose results
   are dropped).  On accelerators, whose lanes run in parallel: `fn(*args)`.
   """
-  count = next(a.shape[0] for a in jax.tree.leaves(args, is_leaf=_shared) if not _shared(a))
+  count = _size(args)
   if count <= GROUP or jax.default_backend() != "cpu":
     return fn(*args)
   groups = -(-count // GROUP)
