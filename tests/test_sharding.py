@@ -59,17 +59,17 @@ def _checks():
                                             roi_size=(32, 32))
   x, y, w, h = sequence.roi
   rois = np.array([sequence.roi, (x + 5, y - 3, w, h), (x - 4, y + 4, w, h)])
-  config = jaxpso.TrackConfig(similarity="ssd", levels=1, swarm_size=8, max_iterations=5,
+  config = jaxpso.TrackConfig(similarity="ncc", levels=2, swarm_size=8, max_iterations=5,
                               search_radius=6.0)
   one = jaxpso.track(sequence.frames, rois, config=config, devices=devices[:1])
   for chosen in (None, devices[:2]):
     many = jaxpso.track(sequence.frames, rois, config=config, devices=chosen)
     # Not bit-identical (XLA partitions the products per device, so sums are
-    # taken in another order): the float32 loss cannot tell apart estimates a
-    # few thousandths of a pixel from its optimum, so where a refinement stops
-    # differs by up to its stopping tolerance (0.01 px); most corners agree
-    # within 1e-4 px.
-    np.testing.assert_allclose(many.corners, one.corners, rtol=0, atol=1e-2)
+    # taken in another order), but within 1e-3 px: the refinement ends with
+    # the undamped step from its best estimate, not at whichever step the
+    # loss's rounding accepted (`refine.levenberg_marquardt`; 4.8e-3 px apart
+    # before).  Most corners agree within 1e-4 px.
+    np.testing.assert_allclose(many.corners, one.corners, rtol=0, atol=1e-3)
     assert np.median(np.abs(many.corners - one.corners)) < 1e-4
     np.testing.assert_array_equal(many.status, one.status)
   # The frame step keeps the regions split: each device's carry holds its region.

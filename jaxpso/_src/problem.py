@@ -292,11 +292,11 @@ class Problem:
     def body(carry):
       u, level, steps = carry
       bins = self._template_bins(level)
-      u, _, taken = refine.levenberg_marquardt(
+      u, taken = refine.levenberg_marquardt(
           u, lambda v, first: self._linearise(v, base, level, bins, first),
           lambda v: self._level_loss(v, base, level, bins), self.knobs.refine_steps,
           jnp.where(level > 0, _COARSE_TOLERANCE, _TOLERANCE)
-          * jnp.exp2(level.astype(jnp.float32)), first=mi, second=level == 0)
+          * jnp.exp2(level.astype(jnp.float32)), first=mi, second=level == 0, polish=not mi)
       return u, level - 1, steps + taken
 
     u, _, steps = jax.lax.while_loop(lambda c: c[1] >= 0, body,
