@@ -176,7 +176,7 @@ def test_align_retries_where_the_retry_disagrees_with_the_best():
 
   once, single = error(jaxpso.TrackConfig(retries=0))
   again, retried = error(jaxpso.TrackConfig())
-  assert once > 5.0 and float(single.quality) < 0.95
+  assert once > 1.0 and float(single.quality) < 0.95  # a failure in the protocol's terms
   assert again < 0.5 and float(retried.quality) > 0.99
   assert int(retried.num_evaluations) > int(single.num_evaluations)
 

@@ -99,7 +99,7 @@ class TrackConfig:
       of largest gradient, and the full-resolution loss and `quality` a
       regular subsample (every s-th row and column), so a region of any size
       costs at most this many points per set.  None (the default):
-      `template.RESOLUTION` (2 560, about 50×50; the trade-off is measured
+      `template.RESOLUTION` (1 280, about 36×36; the trade-off is measured
       in benchmarks/README.md, resolution).  At least 64 (8×8) and at most
       the template's pixels.
     min_valid (float): fraction of template pixels that must land in the image.

@@ -17,7 +17,7 @@ their pyramid level:
 * `FULL`: the full-resolution pixels of the final loss and `quality`: all
   of them up to `resolution`, over that a regular subsample (every s-th
   row and column; with the default `RESOLUTION` a 100×100 template keeps
-  every second), scored in one chunk.
+  every third), scored in one chunk.
 
 `resolution` (`TrackConfig.resolution`, static: it sets the arrays'
 capacity) is the budget of points per set; the default's trade-off is
@@ -40,7 +40,7 @@ import numpy as np
 
 from jaxpso._src import atlas
 
-RESOLUTION = 2560
+RESOLUTION = 1280
 """Points per set at most by default (more pixels: those of largest gradient, or a subsample)."""
 MIN_RESOLUTION = 64
 """The smallest budget (an 8×8 template's pixels)."""
@@ -95,14 +95,35 @@ SIMILARITIES = ("mi", "ncc", "ssd")
 """The order of `Template.self_loss`."""
 
 
+def _gradient_magnitude(image: np.ndarray) -> np.ndarray:
+  """(h·w,) squared gradient magnitude of an (h, w) image, `np.gradient`'s differences (0.6× its time)."""
+  gx, gy = np.empty_like(image), np.empty_like(image)
+  for g, f, axis in ((gx, image, 1), (gy, image.T, 0)):
+    g = g if axis == 1 else g.T
+    np.subtract(f[:, 2:], f[:, :-2], out=g[:, 1:-1])
+    g[:, 1:-1] *= 0.5
+    np.subtract(f[:, 1], f[:, 0], out=g[:, 0])
+    np.subtract(f[:, -1], f[:, -2], out=g[:, -1])
+  gx *= gx
+  gy *= gy
+  gx += gy
+  return gx.reshape(-1)
+
+
 def _largest_gradient(image: np.ndarray, count: int) -> np.ndarray:
-  """Flat indices of the `count` pixels of largest gradient magnitude, ascending."""
+  """Flat indices of the `count` pixels of largest gradient magnitude, ascending.
+
+  Ties at the threshold go to the first pixels (the selection is a function
+  of the image alone).  A partition of the values and two comparisons took
+  half the time of an `argpartition`.
+  """
   if count >= image.size:
     return np.arange(image.size)
-  gy, gx = np.gradient(image)
-  magnitude = (gx * gx + gy * gy).reshape(-1)
-  chosen = np.zeros(magnitude.size, bool)  # marked, not sorted: ascending for less
-  chosen[np.argpartition(magnitude, magnitude.size - count)[magnitude.size - count:]] = True
+  magnitude = _gradient_magnitude(image)
+  threshold = np.partition(magnitude, magnitude.size - count)[magnitude.size - count]
+  chosen = magnitude > threshold
+  ties = np.flatnonzero(magnitude == threshold)
+  chosen[ties[:count - np.count_nonzero(chosen)]] = True
   return np.flatnonzero(chosen)
 
 
