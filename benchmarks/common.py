@@ -91,6 +91,14 @@ def write(name: str, payload: dict, markdown: str) -> None:
   print(markdown)
 
 
+def corner_error(h, origin, size: int = 100) -> float:
+  """RMS distance (px) of a size×size template's corners mapped by h (3, 3) from them moved to origin (x, y)."""
+  import cv2
+  source = np.float32([[0, 0], [size - 1, 0], [size - 1, size - 1], [0, size - 1]])
+  mapped = cv2.perspectiveTransform(source[None], np.asarray(h, np.float64))[0]
+  return float(np.sqrt(np.mean(np.sum((mapped - (source + origin)) ** 2, axis=1))))
+
+
 def status_precision(status: np.ndarray, errors: np.ndarray, good_px: float = 5.0) -> dict:
   """Counts for the status's precision: frames not LOST but more than `good_px` off, and good ones LOST.
 

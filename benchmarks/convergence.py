@@ -117,11 +117,6 @@ def trials(count: int, sigma: float, seed: int):
     yield name, origin, cv2.getPerspectiveTransform(SOURCE, start).astype(np.float32)
 
 
-def corner_error(h, origin) -> float:
-  mapped = cv2.perspectiveTransform(SOURCE[None], np.asarray(h, np.float64))[0]
-  return float(np.sqrt(np.mean(np.sum((mapped - (SOURCE + origin)) ** 2, axis=1))))
-
-
 def run_ecc(image, template, start, iterations: int = ECC_ITERATIONS):
   criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-6)
   try:
@@ -196,7 +191,7 @@ def measure(methods: dict, conditions, sigmas, count: int, images, log):
             seconds[method].append(spent)
             evaluations[method].append(used)
           found[method] = h
-          errors[method].append(np.inf if h is None else corner_error(h, origin))
+          errors[method].append(np.inf if h is None else common.corner_error(h, origin))
         if "ecc" in found and "opencv-ecc" in found and found["opencv-ecc"] is not None:
           direct = cv2.perspectiveTransform(SOURCE[None], found["opencv-ecc"].astype(np.float64))
           ours = cv2.perspectiveTransform(SOURCE[None], found["ecc"].astype(np.float64))

@@ -51,7 +51,7 @@ def align_rows(resolution: int, count: int) -> list[dict]:
         template = images[name][y:y + convergence.SIZE, x:x + convergence.SIZE]
         image = change(images[name], np.random.default_rng([int(sigma), i])).astype(np.float32)
         h, spent, _ = convergence.align_once(image, template, start, config, i)
-        errors.append(convergence.corner_error(h, origin))
+        errors.append(common.corner_error(h, origin))
         seconds.append(spent)
       rows.append({"resolution": resolution, "condition": condition, "sigma": sigma,
                    "trials": count, "success": float(np.mean(np.asarray(errors) <= 1.0)),

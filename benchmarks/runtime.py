@@ -44,7 +44,6 @@ TRIALS = 200
 
 def _align_rows():
   import cv2
-  import convergence  # its corner error
   import jaxpso
 
   image = np.asarray(jaxpso.data.load_image("camera"), np.float32)
@@ -74,8 +73,8 @@ def _align_rows():
       except cv2.error:
         pass
       ecc.append(time.perf_counter() - begin)
-      off.append(convergence.corner_error(found, np.array([x, y])) > 1.0)
-      ecc_off.append(convergence.corner_error(warp, np.array([x, y])) > 1.0)
+      off.append(common.corner_error(found, np.array([x, y])) > 1.0)
+      ecc_off.append(common.corner_error(warp, np.array([x, y])) > 1.0)
     rows.append({"call": f"align MI σ = {sigma:g} px, × ECC's median",
                  "value": float(np.median(ours) / np.median(ecc)),
                  "detail": f"{np.median(ours) * 1e3:.1f} vs {np.median(ecc) * 1e3:.1f} ms;"

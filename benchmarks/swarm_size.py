@@ -95,7 +95,7 @@ def run_protocol(config: jaxpso.TrackConfig, sigma: float, count: int) -> dict:
     begin = time.perf_counter()
     result = jax.block_until_ready(jaxpso.align(crop, template, start, config=config, key=i))
     out["seconds"].append(time.perf_counter() - begin)
-    out["error"].append(convergence.corner_error(result.homography, origin))
+    out["error"].append(common.corner_error(result.homography, origin))
     out["evaluations"].append(int(result.num_evaluations))
     out["swarm_iterations"].append(swarm_iterations(result, config))
   return {key: np.asarray(value) for key, value in out.items()}
