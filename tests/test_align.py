@@ -330,3 +330,16 @@ def test_resolution_caps_every_point_set_and_the_alignment_stays_subpixel():
                                        key=seed).homography) for seed in range(3)]
   assert programs_made() == before + 1  # resolution is static: its own program, once
   assert max(errors) < 0.5, errors
+
+
+@pytest.mark.parametrize("count", [1, 37, 300, 1279])
+def test_a_level_keeps_its_pixels_of_largest_gradient_ties_going_to_the_first(count):
+  # Against a stable sort of np.gradient's magnitudes, on an image whose
+  # flat half makes every magnitude there tie.
+  from jaxpso._src import template as templates
+  image = np.zeros((40, 32), np.float32)
+  image[:, 16:] = np.random.default_rng(count).random((40, 16))
+  gy, gx = np.gradient(image)
+  magnitude = (gx * gx + gy * gy).reshape(-1)
+  expected = np.sort(np.argsort(-magnitude, kind="stable")[:count])
+  np.testing.assert_array_equal(templates._largest_gradient(image, count), expected)

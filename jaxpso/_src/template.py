@@ -96,14 +96,17 @@ SIMILARITIES = ("mi", "ncc", "ssd")
 
 
 def _gradient_magnitude(image: np.ndarray) -> np.ndarray:
-  """(h·w,) squared gradient magnitude of an (h, w) image, `np.gradient`'s differences (0.6× its time)."""
+  """(h·w,) squared gradient magnitude of an (h, w) image (h, w ≥ 2), `np.gradient`'s differences in 0.6× its time."""
+
+  def along_rows(f, out):  # central differences along the last axis, one-sided at its ends
+    np.subtract(f[:, 2:], f[:, :-2], out=out[:, 1:-1])
+    out[:, 1:-1] *= 0.5
+    np.subtract(f[:, 1], f[:, 0], out=out[:, 0])
+    np.subtract(f[:, -1], f[:, -2], out=out[:, -1])
+
   gx, gy = np.empty_like(image), np.empty_like(image)
-  for g, f, axis in ((gx, image, 1), (gy, image.T, 0)):
-    g = g if axis == 1 else g.T
-    np.subtract(f[:, 2:], f[:, :-2], out=g[:, 1:-1])
-    g[:, 1:-1] *= 0.5
-    np.subtract(f[:, 1], f[:, 0], out=g[:, 0])
-    np.subtract(f[:, -1], f[:, -2], out=g[:, -1])
+  along_rows(image, gx)
+  along_rows(image.T, gy.T)
   gx *= gx
   gy *= gy
   gx += gy
