@@ -237,8 +237,14 @@ def _register_ecc(image: atlas.Atlas, finest: _Level, start, iterations: int):
 
 
 def _ecc_host(pixels, geometry, template, start, *, iterations: int):
-  """`ecc` of the atlas's full-resolution level, with the callback's result types."""
-  offset, width, height = (int(v) for v in geometry)
+  """`ecc` of the atlas's full-resolution level, with the callback's result types.
+
+  The arguments may arrive as JAX arrays: iterating one would dispatch a JAX
+  computation from inside the running program's callback, which deadlocked
+  `track` with `method="ecc"` (benchmarks/sequence.py, 150 frames), so each
+  is read into NumPy first.
+  """
+  offset, width, height = (int(v) for v in np.asarray(geometry))
   image = np.asarray(pixels)[offset:offset + width * height].reshape(height, width)
   h, converged, count = ecc(image, template, start, iterations=iterations)
   return h, np.bool_(converged), np.int32(count)
