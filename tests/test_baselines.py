@@ -1,6 +1,8 @@
 """baselines: the classic gradient alignments converge, stay finite, and ECC is OpenCV's."""
 
 import functools
+import subprocess
+import sys
 
 import cv2
 import jax
@@ -186,8 +188,6 @@ def test_track_with_ecc_finishes_a_long_sequence():
   # The callback once iterated a JAX array, dispatching a computation from
   # inside the running program: this 150-frame track (benchmarks/sequence.py)
   # deadlocked on the second call, every time.
-  import subprocess
-  import sys
   done = subprocess.run([sys.executable, "-c", _ECC_TRACK], capture_output=True, text=True,
                         timeout=300)
   assert done.returncode == 0, done.stderr[-2000:]
