@@ -343,3 +343,32 @@ def test_a_level_keeps_its_pixels_of_largest_gradient_ties_going_to_the_first(co
   magnitude = (gx * gx + gy * gy).reshape(-1)
   expected = np.sort(np.argsort(-magnitude, kind="stable")[:count])
   np.testing.assert_array_equal(templates._largest_gradient(image, count), expected)
+
+
+def test_the_refinements_last_step_fades_out_instead_of_switching_off():
+  # `refine.levenberg_marquardt(polish=True)` ends with the undamped step c
+  # from its best estimate: whole up to 4× the tolerance, none past 8×, and
+  # in between part of it, so the result is continuous in c (switched off
+  # at the band's edge, it jumped by the band, 0.04 px here).
+  import jax
+  import jax.numpy as jnp
+  from jaxpso._src import refine
+
+  tolerance = 0.01
+  direction = jnp.asarray([0.6, -0.8])
+
+  @jax.jit
+  def refined(c):
+    # One linearisation at 0 (loss 0, JᵀJ = I, Jᵀr = −c·direction), the
+    # damped step's end rejected (loss 1): the result is the last step's share.
+    u, _ = refine.levenberg_marquardt(
+        jnp.zeros(2), lambda u, first: (jnp.float32(0.0), jnp.eye(2), -c * direction),
+        lambda u: jnp.float32(1.0), jnp.int32(1), jnp.float32(tolerance), polish=True)
+    return u
+
+  sizes = np.linspace(0.0, 12 * tolerance, 241, dtype=np.float32)
+  moved = np.array([np.asarray(refined(c)) @ np.asarray(direction) for c in sizes])
+  band = 4 * tolerance / 0.8  # the step's largest entry is 0.8 c
+  np.testing.assert_allclose(moved[sizes <= band], sizes[sizes <= band], rtol=1e-5, atol=1e-7)
+  np.testing.assert_array_equal(moved[sizes >= 2 * band], 0.0)
+  assert np.abs(np.diff(moved)).max() <= 2.1 * (sizes[1] - sizes[0])

@@ -129,7 +129,8 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
       move less than `_SWITCH` × the tolerance, the second begins (damping
       and rejections reset), within the same `steps`.
     polish: (static) where the undamped step from the lowest-loss
-      parameters stays within `_NOISE` × tolerance, return its end instead.
+      parameters stays within `_NOISE` × tolerance, return its end instead
+      (up to twice that, part of the way there).
       Only where the step's fixed point is the loss's optimum ("ssd",
       "ncc"): MI's remap is ridged, and its fixed point lies a few
       thousandths of a pixel off (the Baker–Matthews median error went from
@@ -186,9 +187,12 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
   # the estimate: ending with it, the result no longer hangs on those
   # decisions (NCC tracks 4.8e-3 px apart before, 1e-4 after:
   # tests/test_sharding.py).
+  # Taken whole up to `_NOISE` × tolerance and fading out by twice that: a
+  # step taken or not at a band's edge was itself a decision (NCC, 1 of 48
+  # templates 0.04 px apart on 1 and 2 devices, benchmarks/invariance.py).
   step = _step(normal, gradient, 0.0)
-  close = jnp.max(jnp.abs(step)) <= _NOISE * tolerance
-  return jnp.where(close, best_u + step, u), taken + 1
+  share = jnp.clip(2.0 - jnp.max(jnp.abs(step)) / (_NOISE * tolerance), 0.0, 1.0)
+  return u + share * (best_u + step - u), taken + 1
 
 
 def _step(normal, gradient, damping):
