@@ -38,6 +38,7 @@ import jax
 import jax.numpy as jnp
 
 from jaxpso._src import measures
+from jaxpso._src import template as templates
 
 # Damping of the first step, relative to the diagonal of JᵀJ; multiplied by
 # _GROW after a rejected step and by _SHRINK after an accepted one.
@@ -73,13 +74,15 @@ def adapted_coefficients(similarity: str, stats, per_bin=None, linear=False):
   if similarity == "mi":
     sums, counts, inverse, size = per_bin
     mean = jnp.sum(sums) / jnp.maximum(jnp.sum(counts), 1.0)
-    # Every point valid (the usual case): c = argmin Σ (I − X·c)² + |c − mean|²,
+    # Every point valid (the usual case): c = argmin Σ (I − X·c)² + r·|c − mean|²,
     # least squares ridged toward the mean intensity, with the set's
-    # precomputed (XᵀX + I)⁻¹.  Otherwise that inverse is not the valid
-    # points' and c is each bin's mean intensity, a pseudo-count of one pixel
-    # at the mean keeping empty bins finite.
+    # precomputed (XᵀX + r·I)⁻¹, r = `template.REMAP_RIDGE`.  Otherwise
+    # that inverse is not the valid points' and c is each bin's mean
+    # intensity, a pseudo-count of one pixel at the mean keeping empty bins
+    # finite.
     everywhere = jnp.sum(counts) >= (1.0 - _INVALID_SHARE) * size  # Σ_b β_b = 1 per point
-    remap = jnp.where(everywhere, inverse @ (sums + mean), (sums + mean) / (counts + 1.0))
+    remap = jnp.where(everywhere, inverse @ (sums + templates.REMAP_RIDGE * mean),
+                      (sums + mean) / (counts + 1.0))
     return jnp.where(linear, _gain_and_bias(sums, counts), remap)
   if similarity == "ncc":
     _, mean_t, mean_i, var_t, _, cov = measures.ncc_moments(stats)
