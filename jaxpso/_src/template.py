@@ -54,9 +54,10 @@ REMAP_RIDGE = 0.01
 """Weight of MI's remap's pull toward the mean intensity (`Template.remap`, `refine.adapted_coefficients`).
 
 At 1 (a pixel's worth per bin) the remap's fixed point sat off the
-alignment: Baker–Matthews median errors 0.0025 px on unchanged images and
-0.034 px under gamma 0.5; at 0.01, 0.0013 and 0.002–0.004 px, success
-equal in all 36 cells (benchmarks/README.md, session 12).
+alignment: Baker–Matthews median errors 0.0019–0.0032 px on unchanged
+images and 0.032–0.043 px under gamma 0.5; at 0.01, 0.0010–0.0017 and
+0.0022–0.0043 px, success equal in all 36 cells (benchmarks/README.md,
+session 12).  Only 0.01 was tried.
 """
 
 
