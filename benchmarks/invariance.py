@@ -42,6 +42,12 @@ from jaxpso.data import load_image  # noqa: E402
 KEY, START_SIGMA, SWARM_EVALUATIONS, TOLERANCE_PX = 2, 2.0, 300, 1e-3
 
 
+def rectangle(shape) -> np.ndarray:
+  """(4, 2) float32 corners of an (h, w) template: top-left, top-right, bottom-right, bottom-left."""
+  h, w = shape
+  return np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
+
+
 def cases(count: int, seed: int = 11):
   """(images, templates, starts (N, 3, 3), true corners (N, 4, 2), pixel-aligned (N,) bool)."""
   rng = np.random.default_rng(seed)
@@ -51,7 +57,7 @@ def cases(count: int, seed: int = 11):
     source = sources[i % 2]
     w, h = (int(v) for v in rng.integers(40, 100, 2))
     x, y = int(rng.integers(100, 412 - w)), int(rng.integers(100, 412 - h))
-    rect = np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
+    rect = rectangle((h, w))
     if i % 4 == 3:
       image, warp = source, np.eye(3)
     else:
@@ -73,9 +79,8 @@ def cases(count: int, seed: int = 11):
 
 def corners(homography, template) -> np.ndarray:
   """(4, 2) the template's corners mapped by a (3, 3) homography."""
-  h, w = template.shape
-  rect = np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
-  return cv2.perspectiveTransform(rect[None], np.asarray(homography, np.float64))[0]
+  return cv2.perspectiveTransform(rectangle(template.shape)[None],
+                                  np.asarray(homography, np.float64))[0]
 
 
 def run(similarity: str, data) -> dict:

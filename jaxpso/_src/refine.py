@@ -135,9 +135,11 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
       parameters stays within `_NOISE` × tolerance, return its end instead
       (up to twice that, part of the way there).
       Only where the step's fixed point is the loss's optimum ("ssd",
-      "ncc"): MI's remap is ridged, and its fixed point lies a few
-      thousandths of a pixel off (the Baker–Matthews median error went from
-      0.0013 to 0.0086 px, benchmarks/README.md, session 11).
+      "ncc"): MI's remap is ridged, and its fixed point lies off (with the
+      ridge at 1 the Baker–Matthews median error went from 0.0013 to 0.0086
+      px, session 11; at `template.REMAP_RIDGE` the errors held but
+      invariance.py's batch and device differences grew to 5.5e-2 px,
+      session 12; benchmarks/README.md).
 
   Returns:
     ((D,) the lowest-loss parameters visited (or polished), () int32 loss
