@@ -72,41 +72,48 @@ class AlignResult(NamedTuple):
   pose: jax.Array | None = None
 
 
-def _result(found: problems.Candidate, bases, geometry, offsets, config, single) -> AlignResult:
+def _result(found: problems.Candidate, bases, geometry, offsets, config) -> AlignResult:
   """`AlignResult` of a batch's best candidates, homographies moved from window to image pixels
-  (and for motion "plane", `geometry` given, the pose from the base poses `bases`); with
-  `single` (static) element 0 alone, which an unbatched `align` returns: indexing it after the
-  program was one more dispatch, 0.1–0.15 ms of a 6 ms alignment."""
-  pose = None
-  if geometry is not None:
-    pose = jax.vmap(functools.partial(motion.plane_pose, dof=config.dof))(
-        found.u, bases[:, 0], geometry)
-  to_image = jax.vmap(lambda o: homography.translation(o[0], o[1]))(offsets)
-  finite = jnp.isfinite(found.loss)
-  result = AlignResult(
-      homography=jax.vmap(problems.normalized)(to_image @ found.homography),
-      score=score_sign(config) * found.loss, quality=found.quality,
-      status=jnp.where(finite, AlignStatus.SUCCESS, AlignStatus.NO_VALID_WARP).astype(jnp.int32),
-      num_iterations=found.num_iterations, num_evaluations=found.num_evaluations, pose=pose)
-  return jax.tree.map(lambda a: a[0], result) if single else result
+  (and for motion "plane", `geometry` given, the pose from the base poses `bases`).
+
+  An unbatched `align` takes element 0 inside the program (`single`):
+  indexing it after the program was one more dispatch, 0.1–0.15 ms of a
+  6 ms alignment."""
+  def one(found, base, geometry, offset):
+    pose = None if geometry is None else motion.plane_pose(found.u, base, geometry, config.dof)
+    to_image = homography.translation(offset[0], offset[1])
+    status = jnp.where(jnp.isfinite(found.loss), AlignStatus.SUCCESS, AlignStatus.NO_VALID_WARP)
+    return AlignResult(
+        homography=problems.normalized(to_image @ found.homography),
+        score=score_sign(config) * found.loss, quality=found.quality,
+        status=status.astype(jnp.int32), num_iterations=found.num_iterations,
+        num_evaluations=found.num_evaluations, pose=pose)
+
+  return batching.each(one, found, bases[:, 0], geometry, offsets)
 
 
-@functools.partial(programs.Program, static_argnames=("config", "single", "grouped"))
+@functools.partial(programs.Program, static_argnames=("config", "single", "mesh"))
 def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, seeds, offsets,
            knobs: problems.Knobs, *, config: TrackConfig, single: bool = False,
-           grouped: bool = True) -> AlignResult:
+           mesh=None) -> AlignResult:
   """`align` of a batch of N: every argument has the leading N axis (knobs excepted).
 
   images: the `atlas.Atlas` of each image's window, whose top-left pixel is
   at `offsets` (N, 2) in the image; bases (N, 2, 3, 3) the start in window
   coordinates twice (or (N, 2, 4, 4) identity poses, with `geometry` the
   `motion.Plane`s in window coordinates); seeds (N, 2) uint32.  With
-  `single` (N = 1), the result without the N axis; `grouped`: `register.run`'s.
+  `single` (N = 1), the result without the N axis; with a `mesh` of several
+  devices, each runs its share (`sharding.per_device`).
   """
-  contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
-                           geometry, seeds)
-  found = register.run(contexts, knobs, "align", config, grouped).best
-  return _result(found, bases, geometry, offsets, config, single)
+  def share(images, prepared, bases, geometry, seeds, offsets, knobs):
+    contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
+                             geometry, seeds)
+    found = register.run(contexts, knobs, "align", config).best
+    return _result(found, bases, geometry, offsets, config)
+
+  result = sharding.per_device(share, mesh, shared=(6,))(images, prepared, bases, geometry, seeds,
+                                                         offsets, knobs)
+  return jax.tree.map(lambda a: a[0], result) if single else result
 
 
 @functools.partial(programs.Program, static_argnames=("config", "single"))
@@ -117,20 +124,23 @@ def _align_baseline(images: atlas.Atlas, pyramids: list, prepared: templates.Tem
   contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
                            geometry, seeds)
   found = batching.each(lambda c, p: register.baseline(c, p, knobs, config), contexts, pyramids)
-  return _result(found, bases, geometry, offsets, config, single)
+  result = _result(found, bases, geometry, offsets, config)
+  return jax.tree.map(lambda a: a[0], result) if single else result
 
 
 def align(image, template, init_homography, *, config: TrackConfig = TrackConfig(),
           key=0, camera=None, plane_normal=None, devices=None) -> AlignResult:
   """Registers `template` in `image`, starting from `init_homography`; or a batch of them.
 
-  A batch of N alignments is one compiled program (`vmap`): pass images
+  A batch of N alignments is one compiled program: pass images
   (N, H, W[, 3]), templates (N, h, w[, 3]) and init_homography (N, 3, 3);
   the images may differ in size, and so may the templates (but with a
   gradient baseline, `TrackConfig.method`, the templates must share one
   shape).  Every field of the result gains the leading N axis.  With
-  several devices the batch is split over them (`jax.sharding`), results
-  equal to one device's up to float rounding.
+  several devices the batch is split over them (`jax.sharding`).  On a CPU
+  an element's result is bit-identical alone (with its key, below), in any
+  batch and on any number of devices (`batching.each`); on an accelerator
+  the batch is vectorised (`vmap`).
 
   Args:
     image: (H, W) grey or (H, W, 3) colour, uint8 or float in [0, 1].
@@ -141,7 +151,10 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
       camera-motion parameters from the view in which `init_homography`
       holds (pose identity) and the result has the `pose`.
     key: int seed or PRNG key of the swarm (element i of a batch gets its own
-      stream; element 0 that of the unbatched call).
+      stream; element 0 that of the unbatched call).  For a batch also one
+      key per element (a list, (N,) ints or keys, or (N, 2) raw uint32
+      keys): element i then gets the stream, and so the result, of the
+      unbatched call with key[i].
     camera: (3, 3) intrinsics K of `image` (motion "plane"); default
       f = max(H, W), principal point at the centre.  Shared by a batch.
     plane_normal: (3,) unit normal of the template's plane in the camera
@@ -206,15 +219,14 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
   prepared = batching.stack([templates.prepared(t, c.levels, c.pixels, c.bins, statics.resolution)
                              for t, c in zip(templates_, configs)])
   arguments = (batching.stack(pyramids), prepared, bases, geometry,
-               batching.element_seeds(key, len(starts)), offsets)
+               batching.element_seeds(key, len(starts), batched), offsets)
   mesh = sharding.batch_mesh(devices, len(starts))
   if mesh is not None:
     arguments = sharding.split(arguments, mesh)
   knobs = config.knobs()
   single = not batched  # a batch of one on one device (`sharding.batch_mesh`)
   if config.method == "pso":
-    result = _align(*arguments, knobs, config=statics, single=single,
-                    grouped=sharding.on_one_device(mesh))
+    result = _align(*arguments, knobs, config=statics, single=single, mesh=mesh)
   else:
     levels = baselines.template_pyramids(templates_, configs[0].levels)
     result = _align_baseline(arguments[0], sharding.split(levels, mesh) if mesh else levels,

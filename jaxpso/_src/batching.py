@@ -9,14 +9,15 @@ returns element 0 (`align._result`).
 In the program, a batch is a pytree with that leading axis on every leaf,
 except an `atlas.Atlas` with 1-D pixels, which the batch shares (`track`'s
 frame: one image for every region) and which is neither mapped nor
-indexed.  `each` maps an unbatched function (`problem.Problem`'s steps)
-over the elements, `in_groups` runs a batched one a group of elements at a
-time on a CPU, `select` and `take` pick per element, and `where_needed`
-runs a computation only for the elements that need it: under `vmap` a
-per-element `lax.cond` runs both branches for every element (and a
-`while_loop` with a per-element condition becomes selects over its whole
-carry), so `register.run`'s later stages, the swarm above all, would run
-for the whole batch.
+indexed.  `each` maps an unbatched function (`problem.Problem`'s steps,
+a whole registration) over the elements: on a CPU one element at a time,
+through the computation a lone element runs, elsewhere by `vmap`.  `select`
+and `take` pick per element, and `where_needed` runs a computation only for
+the elements that need it: under `vmap` a per-element `lax.cond` runs both
+branches for every element (and a `while_loop` with a per-element
+condition becomes selects over its whole carry), so on an accelerator
+`register.run`'s later stages, the swarm above all, would run for the whole
+batch.
 """
 
 from __future__ import annotations
@@ -55,14 +56,43 @@ def _read_only(array: np.ndarray) -> np.ndarray:
   return array
 
 
-def element_seeds(key, count: int) -> np.ndarray:
-  """(count, 2) uint32 swarm seeds of a batch from one key; element 0's is the key's own.
+def element_seeds(key, count: int, batched: bool) -> np.ndarray:
+  """(count, 2) uint32 swarm seeds of a batch: from one key, or one key per element.
 
-  On the host: as device operations they cost a noticeable share of a short `align`.
+  One key (an int, a typed key or a raw uint32[2] key): element 0's seed is
+  the key's own and element i's follows from it.  For a batch (`batched`),
+  also one key per element: a list of ints or keys, (count,) ints or typed
+  keys, or (count, 2) raw uint32 keys; element i's seed is then that of
+  the unbatched call with key[i].  Int seeds are drawn on the host: as
+  device operations they cost a noticeable share of a short `align`.
+
+  Raises:
+    ValueError: a batch given another number of keys than elements.
   """
+  keys = _per_element(key) if batched else None
+  if keys is not None:
+    if len(keys) != count:
+      raise ValueError(f"key must be one key or one per element of the batch: {len(keys)} keys"
+                       f" for a batch of {count}")
+    return np.stack([np.asarray(swarm_random._as_seed(k)) for k in keys]).astype(np.uint32)
   seed = np.asarray(swarm_random._as_seed(key))
   offsets = np.arange(count, dtype=np.uint32) * np.uint32(0x9E3779B9)  # wraps modulo 2³²
   return np.stack([np.full(count, seed[0]), seed[1] + offsets], axis=-1)
+
+
+def _per_element(key) -> list | None:
+  """The keys of a per-element `key` (`element_seeds`), or None for a single key."""
+  if isinstance(key, (list, tuple)):
+    return [int(k) if isinstance(k, np.integer) else k for k in key]
+  if isinstance(key, (int, np.integer)) or not hasattr(key, "shape"):
+    return None
+  if jax.dtypes.issubdtype(key.dtype, jax.dtypes.prng_key):
+    return list(key) if key.ndim == 1 else None
+  if key.dtype == np.uint32:
+    return list(key) if key.ndim == 2 else None  # (2,) is one raw key
+  if np.issubdtype(key.dtype, np.integer) and key.ndim == 1:
+    return [int(k) for k in np.asarray(key)]
+  return None
 
 
 # ------------------------------------------------------------ in the program
@@ -87,46 +117,25 @@ def _mapped(fn, tree):
 
 
 def each(fn: Callable, *args):
-  """`jax.vmap(fn)(*args)` over the leading axis, or for a batch of one `fn` on the element itself.
+  """`fn` (unbatched) on every element of the leading axis: one after another on a CPU, else `vmap`.
 
-  An `atlas.Atlas` with 1-D pixels is shared by the batch (not mapped).
-  Under `vmap`, every `while_loop` with a per-element condition becomes a
-  loop of selects over its whole carry (and a `cond` runs both branches):
-  for one element that only cost compilation time and run time.
+  An `atlas.Atlas` with 1-D pixels is shared by the batch (not mapped).  A
+  batch of one calls `fn` on the element itself.  On a CPU an element runs
+  the very computation it runs alone, so its result does not depend on the
+  batch it is in (`vmap` vectorises by the batch's width, and XLA then
+  rounds sums and fused multiply-adds otherwise: a registration that stops
+  where its steps fall under a tolerance ended up to 9e-3 px elsewhere,
+  benchmarks/README.md, session 13); its loops stop where the element's
+  own do, where under `vmap` every `while_loop` runs to the batch's slowest
+  element as selects over the whole carry.  Accelerators, whose lanes run
+  in parallel, `vmap`.
   """
   count = _size(args)
-  if count != 1:
-    return jax.vmap(fn, in_axes=_axes(args))(*args)
-  return jax.tree.map(lambda a: a[None], fn(*_mapped(lambda a: a[0], args)))
-
-
-# `in_groups`'s largest group on a CPU.  Sweep (R = 16 / 64 / 256 regions of
-# 48×48, 20 frames, 2 rounds; benchmarks/README.md, session 10): groups of 8, 16
-# or 32 all ran at 0.72–0.89 ms per region-frame, groups of 4 at 0.79–0.91,
-# the whole batch at once 0.93–0.97 (R = 64) and 1.12–1.36 (R = 256).  16
-# leaves every batch of up to 16 as it was.
-GROUP = 16
-
-
-def in_groups(fn: Callable, *args):
-  """`fn(*args)` for a batch, on a CPU in sequential groups of at most `GROUP` elements.
-
-  `fn` maps batched pytrees (leading axis R; a shared `atlas.Atlas` as it
-  is) to batched pytrees.  Under `vmap` every `while_loop` runs until the
-  batch's slowest element is done, as selects over the whole batch's carry;
-  in groups each stops at its own group's slowest, over a carry that stays
-  in the cache.  The R elements are split into ceil(R / GROUP) groups of
-  equal size (the last padded with copies of element R − 1, whose results
-  are dropped).  On accelerators, whose lanes run in parallel: `fn(*args)`.
-  """
-  count = _size(args)
-  if count <= GROUP or jax.default_backend() != "cpu":
-    return fn(*args)
-  groups = -(-count // GROUP)
-  size = -(-count // groups)
-  indices = jnp.minimum(jnp.arange(groups * size), count - 1).reshape(groups, size)
-  found = jax.lax.map(lambda group: fn(*take(args, group)), indices)
-  return jax.tree.map(lambda a: a.reshape((groups * size,) + a.shape[2:])[:count], found)
+  if count == 1:
+    return jax.tree.map(lambda a: a[None], fn(*_mapped(lambda a: a[0], args)))
+  if jax.default_backend() == "cpu":
+    return jax.lax.map(lambda i: fn(*_mapped(lambda a: a[i], args)), jnp.arange(count))
+  return jax.vmap(fn, in_axes=_axes(args))(*args)
 
 
 def select(mask, first, second):
@@ -136,23 +145,23 @@ def select(mask, first, second):
       first, second)
 
 
+def as_batch(tree):
+  """One element's pytree as a batch of one (a shared `atlas.Atlas` as it is)."""
+  return _mapped(lambda a: a[None], tree)
+
+
 def take(tree, indices):
   """The elements `indices` (C,) of every leaf's leading axis (a shared `atlas.Atlas` as it is)."""
   return _mapped(lambda a: a[indices], tree)
 
 
 def _capacity(size: int) -> int:
-  """Elements per round of `where_needed` for a batch of `size`.
+  """Elements per round of `where_needed` for a batch of `size`: ceil(size / 8), in parallel slots.
 
-  1 on a CPU: a single element runs its loops and conditionals as such,
-  while under `vmap` (`each`) every loop runs to its slowest element as
-  selects and every conditional both branches, so one element at a time
-  was the fastest even when every element needed the search
-  (benchmarks/README.md, runtime before and after issue 17).
-  ceil(size / 8) on accelerators, whose slots run in parallel (not
-  measured on a GPU).
+  (A CPU runs a batch one element at a time, `each`, and needs no rounds.)
+  Not measured on a GPU.
   """
-  return 1 if jax.default_backend() == "cpu" else -(-size // 8)
+  return -(-size // 8)
 
 
 def where_needed(mask, compute: Callable, otherwise):

@@ -177,7 +177,7 @@ def intensity_range(values, mask) -> jax.Array:
   least = jnp.min(jnp.where(valid, values, jnp.inf))
   span = jnp.max(jnp.where(valid, values, -jnp.inf)) - least
   span = jnp.where(span > 0, span, 1.0)
-  index = jnp.clip(((values - least) / span * _RANGE_HISTOGRAM).astype(jnp.int32), 0,
+  index = jnp.clip(((values - least) * (_RANGE_HISTOGRAM / span)).astype(jnp.int32), 0,
                    _RANGE_HISTOGRAM - 1)
   counts = jnp.zeros(_RANGE_HISTOGRAM, jnp.float32).at[
       jnp.where(valid, index, _RANGE_HISTOGRAM).reshape(-1)].add(1.0, mode="drop")

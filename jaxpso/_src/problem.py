@@ -128,7 +128,7 @@ def measure_of(config) -> measures.Measure:
 
 def normalized(h) -> jax.Array:
   """(3, 3) h / h[2, 2] with h[2, 2] exactly 1 (XLA divides by multiplying)."""
-  return (h / h[2, 2]).at[2, 2].set(1.0)
+  return (h * (1.0 / h[2, 2])).at[2, 2].set(1.0)
 
 
 class Problem:
@@ -232,7 +232,7 @@ class Problem:
 
     def to_level(u):  # with h[2, 2] = 1, the homography's free scale stays out of J
       h = atlas.to_level(self.homography(u, base), level)
-      return h / h[2, 2]
+      return h * (1.0 / h[2, 2])
 
     h = to_level(u)
     count = self.template.sets[level, 1]

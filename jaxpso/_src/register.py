@@ -20,10 +20,11 @@ several times as long (benchmarks/README.md, cold_start.py).  The image
 (`atlas`) and the template (`template`) are point sets and buffers of fixed
 capacity, so neither image nor template size enters the program either.
 
-In a batch (`run`), the first stage runs for every element at once, and the
-others only for the elements still short of it, gathered a few at a time
-(`batching.where_needed`): under `vmap` a per-element `lax.cond` would run
-the swarm for every element.
+In a batch (`run`) on a CPU, every element runs the stage loop alone, one
+after another.  On an accelerator the first stage runs for every element
+at once, and the others only for the elements still short of it, gathered
+a few at a time (`batching.where_needed`): under `vmap` a per-element
+`lax.cond` would run the swarm for every element.
 """
 
 from __future__ import annotations
@@ -296,28 +297,26 @@ def _loop(contexts: problems.Context, state: State, knobs: problems.Knobs, pipel
   return jax.lax.while_loop(lambda s: jnp.any(s.stage < len(stages)), body, state)
 
 
-def run(contexts: problems.Context, knobs: problems.Knobs, pipeline: str, config,
-        grouped: bool = True) -> State:
+def run(contexts: problems.Context, knobs: problems.Knobs, pipeline: str, config) -> State:
   """The stages of `pipeline` ("align" or "track") for a batch of registrations (leading axis R, static).
 
-  A batch of one runs the stage loop alone.  A larger batch runs the first
-  stage for every element at once (with `grouped`, static, on a CPU a group
-  at a time, `batching.in_groups`: not for a batch split over several
-  devices, where a group would gather elements across them), then the loop
-  only for the elements it left short (`batching.where_needed`), a few at a
-  time.
+  A batch of one runs the stage loop alone, and so does every element of a
+  batch on a CPU (`batching.each`: one after another, the lone element's
+  computation).  On an accelerator the first stage runs for every element
+  at once, then the loop only for the elements it left short
+  (`batching.where_needed`), a few at a time.
   """
   count = contexts.seed.shape[0]
-  state = _initial(count, config)
   if count == 1 or config.method != "pso":
-    return _loop(contexts, state, knobs, pipeline, config)
+    return _loop(contexts, _initial(count, config), knobs, pipeline, config)
+  if jax.default_backend() == "cpu":
+    return batching.each(
+        lambda context: jax.tree.map(lambda a: a[0], _loop(
+            batching.as_batch(context), _initial(1, config), knobs, pipeline, config)), contexts)
   stages, advance = PIPELINES[pipeline]
-
-  def first(contexts, state):
-    return advance(state, _pass(contexts, state, knobs, stages, config, swarm=False), contexts,
-                   knobs)
-
-  state = batching.in_groups(first, contexts, state) if grouped else first(contexts, state)
+  state = _initial(count, config)
+  state = advance(state, _pass(contexts, state, knobs, stages, config, swarm=False), contexts,
+                  knobs)
   return batching.where_needed(
       state.stage < len(stages),
       lambda indices: _loop(batching.take(contexts, indices), batching.take(state, indices), knobs,

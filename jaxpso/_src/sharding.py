@@ -2,11 +2,12 @@
 
 A batch's leading axis is laid out over a 1-D `Mesh` of the chosen devices
 (`NamedSharding(mesh, P("batch"))`); what the whole batch shares (a frame) is
-replicated.  The compiled programs are the unsharded ones: XLA's SPMD
-partitioner splits them, each device computing its share, and inserts the
-cross-device communication (gathering the elements that need a swarm, the
-swarm's global best).  A batch is padded, repeating its last element, to a
-multiple of the number of devices; the padding is dropped from the results.
+replicated.  `align` and `track` run their program on each device's share
+(`per_device`, `jax.shard_map`): an element computes on any number of
+devices what it computes on one.  `pso.run`'s particles are split by
+XLA's SPMD partitioner, which inserts the swarm's global best.  A batch is
+padded, repeating its last element, to a multiple of the number of
+devices; the padding is dropped from the results.
 """
 
 from __future__ import annotations
@@ -19,11 +20,6 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec
 
 AXIS = "batch"
-
-
-def on_one_device(mesh: Mesh | None) -> bool:
-  """Whether a batch placed by `batch_mesh`'s `mesh` stays on one device."""
-  return mesh is None or mesh.devices.size == 1
 
 
 def batch_mesh(devices, size: int) -> Mesh | None:
@@ -74,6 +70,26 @@ def split(tree, mesh: Mesh | None):
   if mesh is None:
     return jax.device_put(tree)  # jnp.asarray compiles a copy program per shape
   return jax.device_put(_pad(tree, mesh.size), NamedSharding(mesh, PartitionSpec(AXIS)))
+
+
+def per_device(fn, mesh: Mesh | None, shared: tuple[int, ...] = ()):
+  """`fn` run by every device of `mesh` on its share of the batch (`jax.shard_map`).
+
+  `fn`'s positional arguments are batched pytrees (leading axis split over
+  the mesh), except those at the positions `shared`, which every device
+  sees whole; its results are batched.  Without a mesh of several
+  devices, `fn` itself.
+  """
+  if mesh is None or mesh.devices.size == 1:
+    return fn
+
+  def split_over_devices(*args):
+    specs = tuple(PartitionSpec() if i in shared else PartitionSpec(AXIS)
+                  for i in range(len(args)))
+    return jax.shard_map(fn, mesh=mesh, in_specs=specs, out_specs=PartitionSpec(AXIS),
+                         check_vma=False)(*args)
+
+  return split_over_devices
 
 
 def replicate(tree, mesh: Mesh | None):

@@ -118,7 +118,7 @@ def _damped(velocity):
   if velocity.shape[-1] == 4:
     return plane.pose_from_params(_PREDICTED_FRACTION * jax.vmap(plane.params_from_pose)(velocity))
   eye = jnp.eye(3, dtype=velocity.dtype)
-  return eye + _PREDICTED_FRACTION * (velocity / velocity[:, 2:, 2:] - eye)
+  return eye + _PREDICTED_FRACTION * (velocity * (1.0 / velocity[:, 2:, 2:]) - eye)
 
 
 def _frame_seed(seed, frame):
@@ -148,11 +148,20 @@ def _predict(contexts: problems.Context, knobs, config):
                            image_ranges=fall_back(contexts.image_ranges))
 
 
-@functools.partial(programs.Program, static_argnames=("config", "grouped"))
+@functools.partial(programs.Program, static_argnames=("config", "mesh"))
 def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs: problems.Knobs,
-                *, config: TrackConfig, grouped: bool = True):
+                *, config: TrackConfig, mesh=None):
   """One frame of R regions: (carry, the frame's atlas, shared (1-D pixels) or one per region) →
-  (carry, per-frame outputs, each with the leading R); `grouped`: `register.run`'s."""
+  (carry, per-frame outputs, each with the leading R); with a `mesh` of several devices, each
+  runs its share of the regions (`sharding.per_device`)."""
+  shared = (1, 3) if image.pixels.ndim == 1 else (3,)
+  return sharding.per_device(functools.partial(_regions_step, config=config), mesh, shared)(
+      carry, image, constants, knobs)
+
+
+def _regions_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs: problems.Knobs,
+                  config: TrackConfig):
+  """`_frame_step` for the regions of one device."""
   seeds = jax.vmap(_frame_seed)(constants.seed, carry.frame)
   predicted = jnp.where(knobs.predict, _damped(carry.velocity) @ carry.estimate, carry.estimate)
   bases = jnp.stack([predicted, carry.estimate], axis=1)
@@ -163,7 +172,7 @@ def _frame_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knobs:
   contexts = jax.lax.cond(knobs.predict, lambda c: _predict(c, knobs, config), lambda c: c,
                           contexts)
   if config.method == "pso":
-    state = register.run(contexts, knobs, "track", config, grouped)
+    state = register.run(contexts, knobs, "track", config)
     found, recovered, searched = state.best, state.recovered, state.searched
   else:
     found = batching.each(lambda c, p: register.baseline(c, p, knobs, config), contexts,
@@ -238,13 +247,14 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
   """Tracks the region `roi` of frame 0 through `frames`; or a batch of regions.
 
   A batch of R regions, `roi` of shape (R, 4) or (R, 4, 2), is tracked in one
-  compiled program (`vmap` over the templates); every field of the result
-  gains a leading R axis.  Each region keeps its own template (its own
-  pixels; with a gradient baseline all regions must have one size).  With
-  `sequences=True` region r is tracked in sequence r of `frames`.  The
-  costly searches (the swarm, the recovery) run only for the regions that
-  need them.  With several devices the regions are split over them
-  (`jax.sharding`).
+  compiled program; every field of the result gains a leading R axis.  Each
+  region keeps its own template (its own pixels; with a gradient baseline
+  all regions must have one size).  With `sequences=True` region r is
+  tracked in sequence r of `frames`.  The costly searches (the swarm, the
+  recovery) run only for the regions that need them.  With several devices
+  the regions are split over them (`jax.sharding`).  On a CPU a region's
+  track is bit-identical alone, in any batch and on any number of devices
+  (`batching.each`); on an accelerator the batch is vectorised (`vmap`).
 
   Args:
     frames: (T, H, W) or (T, H, W, 3) array, or any iterable of frames (a
@@ -254,7 +264,9 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
       TR, BR, BL in frame-0 pixels; or (R, 4) boxes or (R, 4, 2) corners.
       Each side of a region's template `checks.TEMPLATE_SIDES` (8 to 4096) pixels.
     config: `TrackConfig` (motion, similarity, swarm, refinement, recovery).
-    key: int seed or PRNG key; a fixed key gives bit-identical results.
+    key: int seed or PRNG key; a fixed key gives bit-identical results.  For
+      a batch also one key per region (a list, (R,) ints or keys, or (R, 2)
+      raw uint32 keys): region r is then tracked as alone with key[r].
     camera: (3, 3) intrinsics K for motion "plane"; default f = max(H, W) and
       the principal point at the frame's centre.
     plane_normal: (3,) normal of the target plane in frame-0 camera
@@ -335,7 +347,7 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
   if config.method != "pso":
     pyramid = baselines.template_pyramids(templates_, configs[0].levels)
     statics = dataclasses.replace(config, levels=configs[0].levels).statics()
-  constants = sharding.split(_Constants(prepared, geometry, batching.element_seeds(key, count),
+  constants = sharding.split(_Constants(prepared, geometry, batching.element_seeds(key, count, batched),
                                         pyramid), mesh)
   carry = sharding.split(_Carry(
       first_estimate, np.broadcast_to(np.eye(size, dtype=np.float32), (count, size, size)),
@@ -361,8 +373,7 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
                              mesh)
     else:
       image = sharding.replicate(atlas.build(images[0], levels, capacity), mesh)
-    carry, out = _frame_step(carry, image, constants, knobs, config=statics,
-                             grouped=sharding.on_one_device(mesh))
+    carry, out = _frame_step(carry, image, constants, knobs, config=statics, mesh=mesh)
     outputs.append(out)
     if len(outputs) == _HOST_CHUNK:
       chunks.append(_to_host(outputs))
