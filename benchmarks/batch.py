@@ -3,7 +3,8 @@
 R regions of one synthetic video (240×320, smooth 6-DOF camera motion, the
 embedded image on the plane): R boxes of SIZE×SIZE at seeded random places
 inside the textured plane, tracked together in one call (one compiled frame
-step for the whole batch, `vmap` over the templates).  Each R is tracked
+step for the whole batch; on a CPU each region runs its own program, one
+after another, `batching.each`).  Each R is tracked
 once on a few frames to compile, then timed over the sequence (best of
 `--repeats`); throughput = R × (T − 1) / seconds.  The batching gain is
 measured in the same run two ways: against the first row (region 0 alone,

@@ -64,9 +64,9 @@ def main():
       sys.exit("a process failed")
     alone = tracked().corners
     for path in out:
-      np.testing.assert_allclose(np.load(path), alone, atol=0.05)
+      np.testing.assert_array_equal(np.load(path), alone)
     print(f"2 processes × 2 devices: {REGIONS} regions tracked; both processes' corners equal"
-          " one process's (within 0.05 px)")
+          " one process's bit for bit")
     return
   import jax
   jax.config.update("jax_cpu_collectives_implementation", "gloo")

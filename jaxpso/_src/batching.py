@@ -129,6 +129,12 @@ def each(fn: Callable, *args):
   own do, where under `vmap` every `while_loop` runs to the batch's slowest
   element as selects over the whole carry.  Accelerators, whose lanes run
   in parallel, `vmap`.
+
+  Across devices (`sharding.per_device`) the same holds only if every
+  program rounds alike: XLA rewrites x / broadcast(y) as x · broadcast(1/y)
+  in some programs and not in others (a homography's normalisation then
+  differed by an ulp, and tracks by up to 1.7e-3 px), so the registration
+  writes such divisions as multiplications by the reciprocal.
   """
   count = _size(args)
   if count == 1:

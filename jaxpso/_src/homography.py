@@ -120,6 +120,7 @@ def _inverse(h: jax.Array) -> jax.Array:
   adj, det = _adjugate_and_det(h)
   ok = _invertible(h, det)
   safe_det = jnp.where(ok, det, 1.0)
+  # × the reciprocal, not ÷: one rounding in every program (batching.each)
   return jnp.where(ok[..., None, None], adj * (1.0 / safe_det)[..., None, None], adj)
 
 
@@ -314,6 +315,7 @@ def _normalize_quad(quad: jax.Array) -> tuple[jax.Array, jax.Array, jax.Array]:
   offsets = quad - centre[..., None, :]
   spread = jnp.mean(jnp.abs(offsets), axis=(-2, -1))
   spread = jnp.where(spread > 0, spread, 1.0)
+  # × the reciprocal, not ÷: one rounding in every program (batching.each)
   return centre, spread, offsets * (1.0 / spread)[..., None, None]
 
 

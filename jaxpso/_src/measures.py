@@ -177,6 +177,7 @@ def intensity_range(values, mask) -> jax.Array:
   least = jnp.min(jnp.where(valid, values, jnp.inf))
   span = jnp.max(jnp.where(valid, values, -jnp.inf)) - least
   span = jnp.where(span > 0, span, 1.0)
+  # × the reciprocal, not ÷: one rounding in every program (batching.each)
   index = jnp.clip(((values - least) * (_RANGE_HISTOGRAM / span)).astype(jnp.int32), 0,
                    _RANGE_HISTOGRAM - 1)
   counts = jnp.zeros(_RANGE_HISTOGRAM, jnp.float32).at[

@@ -312,6 +312,7 @@ def plane_homography(pose, camera, normal, distance=1.0) -> jax.Array:
   camera = _camera(camera)
   n = _unit_normal(normal)
   d = _distance(distance)
+  # × the reciprocal, not ÷: one rounding in every program (batching.each)
   t_over_d = pose[..., :3, 3] * (1.0 / d)[..., None]
   euclidean = pose[..., :3, :3] + t_over_d[..., :, None] * n[..., None, :]
   return jnp.matmul(jnp.matmul(camera, euclidean), homography.inverse(camera))
@@ -325,6 +326,7 @@ def _plane_basis(n: jax.Array) -> tuple[jax.Array, jax.Array]:
   """
   e = jax.nn.one_hot(jnp.argmin(jnp.abs(n), axis=-1), 3, dtype=n.dtype)
   u1 = jnp.cross(e, n)
+  # × the reciprocal, not ÷: one rounding in every program (batching.each)
   u1 = u1 * (1.0 / jnp.linalg.norm(u1, axis=-1, keepdims=True))
   return u1, jnp.cross(n, u1)
 
@@ -377,6 +379,7 @@ def pose_from_homography(h, camera, normal, distance=1.0) -> jax.Array:
   tau = jnp.sqrt(jnp.where(ok, p + r, 2.0) + 2.0 * delta)
   # S^(-1/2) = tau (S + delta I)^-1 = adj(S + delta I) / (delta tau).
   inv_sqrt = jnp.stack([r + delta, -q, -q, p + delta], axis=-1).reshape(p.shape + (2, 2))
+  # × the reciprocal, not ÷: one rounding in every program (batching.each)
   q_in = jnp.matmul(a, inv_sqrt * (1.0 / (delta * tau))[..., None, None])
   q_in = jnp.where(ok[..., None, None], q_in, basis)
   scale = sign * jnp.where(ok, 0.5 * tau, 1.0)
@@ -384,6 +387,7 @@ def pose_from_homography(h, camera, normal, distance=1.0) -> jax.Array:
   image = jnp.stack([q1, q2, jnp.cross(q1, q2)], axis=-1)
   frame = jnp.stack([u1, u2, n], axis=-1)
   rotation = jnp.matmul(image, jnp.swapaxes(frame, -1, -2))
+  # × the reciprocal, not ÷: one rounding in every program (batching.each)
   m_n = jnp.sum(m * n[..., None, :], axis=-1) * (1.0 / scale)[..., None]
   rn = jnp.sum(rotation * n[..., None, :], axis=-1)
   return _assemble(rotation, d[..., None] * (m_n - rn))

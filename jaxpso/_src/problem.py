@@ -127,7 +127,7 @@ def measure_of(config) -> measures.Measure:
 
 
 def normalized(h) -> jax.Array:
-  """(3, 3) h / h[2, 2] with h[2, 2] exactly 1 (XLA divides by multiplying)."""
+  """(3, 3) h / h[2, 2] with h[2, 2] exactly 1, rounded alike in every program (`batching.each`)."""
   return (h * (1.0 / h[2, 2])).at[2, 2].set(1.0)
 
 
@@ -232,6 +232,7 @@ class Problem:
 
     def to_level(u):  # with h[2, 2] = 1, the homography's free scale stays out of J
       h = atlas.to_level(self.homography(u, base), level)
+      # × the reciprocal, not ÷: one rounding in every program (batching.each)
       return h * (1.0 / h[2, 2])
 
     h = to_level(u)

@@ -302,6 +302,7 @@ def entropies(counts):
   All zero where the counts are (no valid pixel).
   """
   total = jnp.sum(counts, axis=(-2, -1))
+  # × the reciprocal, not ÷: one rounding in every program (batching.each)
   p = counts * (1.0 / jnp.where(total > 0, total, 1.0))[..., None, None]
   h_a = -_neg_entropy(jnp.sum(p, axis=-1), -1)
   h_b = -_neg_entropy(jnp.sum(p, axis=-2), -1)

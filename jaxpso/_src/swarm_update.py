@@ -105,6 +105,7 @@ def _velocity(state: PSOState, local, hparams: PSOHParams, limits: PSOLimits,
   u1, u2 = _uniform_pair(state.seed, state.iteration, _DIRECTION, x.shape, dtype, config.rng)
   direction = jnp.sqrt(-2.0 * jnp.log1p(-u1)) * jnp.cos(2 * jnp.pi * u2)  # Box–Muller
   norm = jnp.sqrt(jnp.sum(direction**2, axis=0, keepdims=True))
+  # × the reciprocal, not ÷: one rounding in every program (batching.each)
   direction = direction * (1.0 / jnp.where(norm > 0, norm, 1.0))
   # The radius is uniform in [0, |G - x|] (denser towards G).  A volume-uniform
   # radius, |G - x| u^(1/d), puts x' near the surface in 10-D and the swarm

@@ -118,6 +118,7 @@ def _damped(velocity):
   if velocity.shape[-1] == 4:
     return plane.pose_from_params(_PREDICTED_FRACTION * jax.vmap(plane.params_from_pose)(velocity))
   eye = jnp.eye(3, dtype=velocity.dtype)
+  # × the reciprocal, not ÷: one rounding in every program (batching.each)
   return eye + _PREDICTED_FRACTION * (velocity * (1.0 / velocity[:, 2:, 2:]) - eye)
 
 
