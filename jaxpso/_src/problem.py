@@ -251,11 +251,18 @@ class Problem:
       # B as rows (8, c) on the left and as columns (c, 8) on the right: the
       # CPU's products of (k, c) by (c, k') are several times faster than by
       # (k', c) transposed, most of all batched (benchmarks/README.md, batch).
-      terms = [gx * px, gx * py, gx, gy * px, gy * py, gy, across * px, across * py]
+      # Its terms (gx, gy, across) ⊗ (px, py, 1) as one outer product: one
+      # kernel each side, where the 8 products stacked were 8 (a 64-region
+      # track 8 % faster, session 13).
       m = valid.astype(value.dtype)
-      left = jnp.stack(terms + [m * value])
+      slopes = jnp.stack([gx, gy, across])
+      coords = jnp.stack([px, py, jnp.ones_like(px)])
+      b_rows = (slopes[:, None] * coords[None]).reshape(9, -1)[:8]
+      b_columns = (slopes.T[:, :, None] * coords.T[:, None, :]).reshape(-1, 9)[:, :8]
+      left = jnp.concatenate([b_rows, (m * value)[None]])
       if name != "mi":
-        right = jnp.stack(terms + [values, jnp.ones_like(values)], axis=-1)
+        right = jnp.concatenate([b_columns, jnp.stack([values, jnp.ones_like(values)], axis=-1)],
+                                -1)
         stats = measures.add(self.measure, stats, values, value, valid)
         return products + left @ right, stats
       # One product [B; m·I; m; β(I)·m]·[B, X]: the rows past B's give the
@@ -263,7 +270,7 @@ class Problem:
       template = jax.lax.dynamic_slice_in_dim(bins, start, _GN_CHUNK, 0)  # X (c, bins)
       patch = measures.bin_weights(value, self.config.bins, ranges.image) * m
       left = jnp.concatenate([left, m[None], patch])
-      return products + left @ jnp.concatenate([jnp.stack(terms, axis=-1), template], -1), stats
+      return products + left @ jnp.concatenate([b_columns, template], -1), stats
 
     bins_count = self.config.bins
     rows, columns = (10 + bins_count, 8 + bins_count) if name == "mi" else (9, 10)
