@@ -107,6 +107,16 @@ def _checks():
       np.testing.assert_array_equal(a, b)
   alone = jaxpso.align(image, templates[1], starts[1], config=config, key=keys[1])
   np.testing.assert_array_equal(alone.homography, one.homography[1])
+  # A gradient baseline's batch is split per device the same way: equal
+  # within 1e-3 px, not bit for bit (its solvers round an ulp apart across
+  # devices; benchmarks/README.md, session 13).
+  inverse = jaxpso.TrackConfig(method="ic", similarity="ssd", levels=2)
+  one, two = (jaxpso.align(np.stack([image] * 3), templates, starts, config=inverse, devices=d)
+              for d in (devices[:1], devices[:2]))
+  rect = np.float64([[0, 0, 1], [31, 0, 1], [31, 31, 1], [0, 31, 1]])
+  corners = [np.einsum("nij,kj->nki", np.float64(r.homography), rect) for r in (one, two)]
+  corners = [c[..., :2] / c[..., 2:] for c in corners]
+  np.testing.assert_allclose(corners[1], corners[0], rtol=0, atol=1e-3)
   print("align", flush=True)
 
 

@@ -111,20 +111,28 @@ def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, s
     found = register.run(contexts, knobs, "align", config).best
     return _result(found, bases, geometry, offsets, config)
 
-  result = sharding.per_device(share, mesh, shared=(6,))(images, prepared, bases, geometry, seeds,
-                                                         offsets, knobs)
-  return jax.tree.map(lambda a: a[0], result) if single else result
+  return _on_devices(share, mesh, single, images, prepared, bases, geometry, seeds, offsets, knobs)
 
 
-@functools.partial(programs.Program, static_argnames=("config", "single"))
+@functools.partial(programs.Program, static_argnames=("config", "single", "mesh"))
 def _align_baseline(images: atlas.Atlas, pyramids: list, prepared: templates.Template, bases,
                     geometry, seeds, offsets, knobs: problems.Knobs, *,
-                    config: TrackConfig, single: bool = False) -> AlignResult:
+                    config: TrackConfig, single: bool = False, mesh=None) -> AlignResult:
   """`_align` with `config.method`'s gradient registration; `pyramids` the templates' levels, (N, h_l, w_l) each."""
-  contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
-                           geometry, seeds)
-  found = batching.each(lambda c, p: register.baseline(c, p, knobs, config), contexts, pyramids)
-  result = _result(found, bases, geometry, offsets, config)
+  def share(images, pyramids, prepared, bases, geometry, seeds, offsets, knobs):
+    contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
+                             geometry, seeds)
+    found = batching.each(lambda c, p: register.baseline(c, p, knobs, config), contexts, pyramids)
+    return _result(found, bases, geometry, offsets, config)
+
+  return _on_devices(share, mesh, single, images, pyramids, prepared, bases, geometry, seeds,
+                     offsets, knobs)
+
+
+def _on_devices(share, mesh, single: bool, *args) -> AlignResult:
+  """`share(*args)` (a batch's alignments; the last argument, the knobs, shared) on each device
+  of `mesh` (`sharding.per_device`); with `single`, element 0 alone."""
+  result = sharding.per_device(share, mesh, shared=(len(args) - 1,))(*args)
   return jax.tree.map(lambda a: a[0], result) if single else result
 
 
@@ -232,7 +240,7 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
     result = _align_baseline(arguments[0], sharding.split(levels, mesh) if mesh else levels,
                              *arguments[1:], knobs,
                              config=dataclasses.replace(config, levels=configs[0].levels).statics(),
-                             single=single)
+                             single=single, mesh=mesh)
   if mesh is not None and not all(a.is_fully_addressable for a in jax.tree.leaves(result)):
     result = sharding.to_host(result)  # spread over several processes (jax.distributed)
   if single:

@@ -50,6 +50,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxpso._src import atlas
+from jaxpso._src import problem as problems
 from jaxpso._src.gradient_solvers import _SOLVERS
 from jaxpso._src.gradient_solvers import _Level
 from jaxpso._src.gradient_solvers import _corners
@@ -145,11 +146,6 @@ def template_pyramids(templates_: list, levels: int) -> list:
   return [np.stack(level) for level in zip(*pyramids)]
 
 
-def _normalized(h) -> jax.Array:
-  """(3, 3) h / h[2, 2] with h[2, 2] exactly 1."""
-  return (h / h[2, 2]).at[2, 2].set(1.0)
-
-
 def _iterate(update, u, state, iterations: int, tolerance: float):
   """Runs u, state ← update(u, state) until `iterations` or a change below `tolerance`.
 
@@ -232,7 +228,7 @@ def _register_ecc(image: atlas.Atlas, finest: _Level, start, iterations: int):
             jax.ShapeDtypeStruct((), jnp.int32))
   h, _, count = jax.pure_callback(
       functools.partial(_ecc_host, iterations=iterations), shapes, image.pixels, image.levels[0],
-      finest.template, _normalized(start), vmap_method="sequential")
+      finest.template, problems.normalized(start), vmap_method="sequential")
   return finest.parameters(h), count
 
 

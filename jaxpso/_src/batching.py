@@ -116,6 +116,11 @@ def _mapped(fn, tree):
   return jax.tree.map(lambda node: node if _shared(node) else fn(node), tree, is_leaf=_shared)
 
 
+def one_at_a_time() -> bool:
+  """Whether a batch runs one element at a time (`each`): on a CPU; accelerators vectorise."""
+  return jax.default_backend() == "cpu"
+
+
 def each(fn: Callable, *args):
   """`fn` (unbatched) on every element of the leading axis: one after another on a CPU, else `vmap`.
 
@@ -139,7 +144,7 @@ def each(fn: Callable, *args):
   count = _size(args)
   if count == 1:
     return jax.tree.map(lambda a: a[None], fn(*_mapped(lambda a: a[0], args)))
-  if jax.default_backend() == "cpu":
+  if one_at_a_time():
     return jax.lax.map(lambda i: fn(*_mapped(lambda a: a[i], args)), jnp.arange(count))
   return jax.vmap(fn, in_axes=_axes(args))(*args)
 

@@ -309,7 +309,7 @@ def run(contexts: problems.Context, knobs: problems.Knobs, pipeline: str, config
   count = contexts.seed.shape[0]
   if count == 1 or config.method != "pso":
     return _loop(contexts, _initial(count, config), knobs, pipeline, config)
-  if jax.default_backend() == "cpu":
+  if batching.one_at_a_time():
     return batching.each(
         lambda context: jax.tree.map(lambda a: a[0], _loop(
             batching.as_batch(context), _initial(1, config), knobs, pipeline, config)), contexts)
