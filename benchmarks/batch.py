@@ -54,6 +54,19 @@ def regions(sequence, count: int, seed: int = 0) -> np.ndarray:
   return np.array(boxes)
 
 
+def errors(sequence, boxes, corners) -> np.ndarray:
+  """(R, T) corner RMS (px) of tracked corners (R, T, 4, 2) from where the plane's motion carries each box."""
+  truth = sequence.corners[0]
+  out = np.zeros(corners.shape[:2])
+  for r, (x, y, w, h) in enumerate(boxes):
+    box = np.float32([[x, y], [x + w - 1, y], [x + w - 1, y + h - 1], [x, y + h - 1]])
+    for t in range(corners.shape[1]):
+      m = cv2.getPerspectiveTransform(np.float32(truth), np.float32(sequence.corners[t]))
+      moved = cv2.perspectiveTransform(box[None], m)[0]
+      out[r, t] = np.sqrt(np.mean(np.sum((corners[r, t] - moved) ** 2, -1)))
+  return out
+
+
 def alone_seconds(sequence, boxes, config, repeats: int) -> np.ndarray:
   """(R,) seconds to track each box alone (best of `repeats`; one compiled program for all)."""
   jaxpso.track(sequence.frames[:2], boxes[0], config=config)
@@ -92,14 +105,7 @@ def main():
       result = jaxpso.track(sequence.frames, boxes, config=config)
       best = min(best, time.perf_counter() - start)
     searched = result.num_evaluations[:, 1:] > config.swarm_size  # (R, T - 1)
-    truth = sequence.corners[0]
-    error = np.zeros((count, args.frames))
-    for r, (x, y, w, h) in enumerate(boxes):  # the plane's motion carries each box
-      corners = np.float32([[x, y], [x + w - 1, y], [x + w - 1, y + h - 1], [x, y + h - 1]])
-      for t in range(args.frames):
-        m = cv2.getPerspectiveTransform(np.float32(truth), np.float32(sequence.corners[t]))
-        moved = cv2.perspectiveTransform(corners[None], m)[0]
-        error[r, t] = np.sqrt(np.mean(np.sum((result.corners[r, t] - moved) ** 2, -1)))
+    error = errors(sequence, boxes, result.corners)
     throughput = count * (args.frames - 1) / best
     rows.append(dict(batch=count, seconds=best, compile_s=compile_s,
                      templates_frames_per_s=throughput,

@@ -45,8 +45,8 @@ import numpy as np
 import common
 import jaxpso
 
-IMAGES = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data",
-                      "images")
+IMAGES = os.environ.get("JAXPSO_IMAGES", os.path.join(
+    os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data", "images"))
 FRAME = (360, 480)  # rows, columns
 FOCAL = 520.0
 SIDES = {"camera": 240, "brick": 280, "gravel": 200, "grass": 260}

@@ -23,7 +23,9 @@ Only programs on the default device are written: a program sharded over
 several devices, taking a static argument whose `repr` is an address (a
 function) or defined inside a function stays in memory only.
 
-Compiler options: XLA's defaults.  An earlier tracker turned XLA:CPU's
+Matrix products are traced in float32 (`MATMUL_PRECISION`), never in an
+accelerator's faster TensorFloat-32 or bfloat16 passes.  Compiler options:
+XLA's defaults.  An earlier tracker turned XLA:CPU's
 YNNPACK dot fusions off (batched MI histograms ran slower in them); the
 point-set registration's products are faster with them (benchmarks/README.md,
 implementation choices).
@@ -50,6 +52,14 @@ import jaxlib
 import numpy as np
 from jax._src.lax import linalg
 from jax.experimental import serialize_executable
+
+MATMUL_PRECISION = "float32"
+"""Every matrix product of jaxpso's programs, whatever `jax_default_matmul_precision` says.
+
+An accelerator's default may round a float32 product's operands to
+TensorFloat-32 (10 mantissa bits): a homography then maps 500 px
+coordinates 0.5 px off, and a Gauss–Newton system loses its last digits.
+"""
 
 MAX_PROGRAMS = 16
 """Default bound of the in-memory table (`set_max_programs`)."""
@@ -169,7 +179,8 @@ class Program:
 
     @functools.wraps(fun)
     def program(*args, **static):  # new per compilation: JAX's caches keyed weakly on it let go with it
-      return fun(*args, **static)
+      with jax.default_matmul_precision(MATMUL_PRECISION):
+        return fun(*args, **static)
 
     compiled = jax.jit(program, static_argnames=self._static).lower(*args, **static).compile()
     _count("compiled")
@@ -210,7 +221,14 @@ class Program:
   def _traced(self):
     """`jax.jit(fun)` for calls inside a transformation (compiler options are for top-level programs)."""
     if self._jitted is None:
-      self._jitted = jax.jit(self._fun, static_argnames=self._static)
+      fun = self._fun
+
+      @functools.wraps(fun)
+      def traced(*args, **static):
+        with jax.default_matmul_precision(MATMUL_PRECISION):
+          return fun(*args, **static)
+
+      self._jitted = jax.jit(traced, static_argnames=self._static)
     return self._jitted
 
 
