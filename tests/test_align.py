@@ -181,6 +181,45 @@ def test_align_retries_where_the_retry_disagrees_with_the_best():
   assert int(retried.num_evaluations) > int(single.num_evaluations)
 
 
+def _bm_error(image, origin, moved, config, key=0):
+  """(max corner error px, result) of a 100×100 Baker–Matthews trial.
+
+  The template is IMAGE's at origin (x, y); moved (4, 2) the start's corners.
+  """
+  source = np.float32([[0, 0], [99, 0], [99, 99], [0, 99]])
+  x, y = origin
+  start = cv2.getPerspectiveTransform(source, np.float32(moved))
+  result = jaxpso.align(image, IMAGE[y:y + 100, x:x + 100], start, config=config, key=key)
+  mapped = cv2.perspectiveTransform(source[None], np.asarray(result.homography, np.float64))[0]
+  return float(np.max(np.linalg.norm(mapped - (source + [x, y]), axis=1))), result
+
+
+def test_a_quick_search_that_finds_the_match_spares_the_full_search():
+  # benchmarks/runtime.py's σ 8 trial 154: both refinements of the start
+  # miss (quality 0.25 and 0.26), and the full search used to run its 40
+  # iterations (1 371 evaluations) where 8 find the match.
+  moved = [[157.33, 225.06], [257.84, 224.9], [241.67, 308.61], [133.83, 323.35]]
+  config = jaxpso.TrackConfig()
+  quick, found = _bm_error(IMAGE, (148, 227), moved, config)
+  full, searched = _bm_error(IMAGE, (148, 227), moved, jaxpso.TrackConfig(quick_iterations=0))
+  assert quick < 0.5 and full < 0.5
+  assert config.swarm_size < int(found.num_evaluations) < config.swarm_size * config.max_iterations
+  assert int(searched.num_evaluations) > config.swarm_size * config.max_iterations
+
+
+def test_a_quick_search_does_not_confirm_a_poor_start():
+  # convergence.py's shading ramp, σ 8, trial 42: the start's refinement is
+  # 3.6 px off at quality 0.65, and 8 swarm iterations stay in its basin;
+  # agreeing with it there must not settle the alignment.
+  rows, columns = np.mgrid[:IMAGE.shape[0], :IMAGE.shape[1]]
+  shaded = np.clip(IMAGE * (0.5 + 0.4 * (rows / (IMAGE.shape[0] - 1)
+                                         + columns / (IMAGE.shape[1] - 1))), 0, 1)
+  moved = [[317.43, 266.6], [418.48, 266.4], [404.07, 366.98], [314.94, 369.19]]
+  error, result = _bm_error(shaded.astype(np.float32), (313, 266), moved,
+                            jaxpso.TrackConfig(), key=42)
+  assert error < 1.0 and float(result.quality) > 0.8, (error, float(result.quality))
+
+
 def test_a_gradient_baseline_behind_align():
   config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "method": "ic", "similarity": "ssd"})
   errors = [_corner_error(jaxpso.align(IMAGE, TEMPLATE, _perturbed(seed, 2.0),

@@ -130,6 +130,8 @@ def test_align(call, error, argument, value):
     ("patience-0", dict(patience=0), ValueError, "patience", "0"),
     ("refine-steps", dict(refine_steps=-1), ValueError, "refine_steps", "-1"),
     ("retries", dict(retries=-1), ValueError, "retries", "-1"),
+    ("quick-iterations", dict(quick_iterations=-1), ValueError, "quick_iterations", "-1"),
+    ("quick-iterations-float", dict(quick_iterations=8.0), ValueError, "quick_iterations", "8.0"),
     ("radius-0", dict(search_radius=0.0), ValueError, "search_radius", "0.0"),
     ("radius-inf", dict(search_radius=math.inf), ValueError, "search_radius", "inf"),
     ("radius-none", dict(search_radius=None), TypeError, "search_radius", "None"),

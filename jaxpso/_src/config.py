@@ -63,6 +63,15 @@ class TrackConfig:
       defaults).
     swarm_size (int): particles of the swarm.
     max_iterations (int): PSO iterations at most (a baseline's per level).
+    quick_iterations (int): `align`'s search first runs one swarm of this
+      many iterations; its refined best is the result where it reaches
+      `retry_quality` or agrees within 1 px with the start's refinement on
+      a quality of at least 0.8, and only otherwise the search of
+      `max_iterations` runs.  At σ = 8 px a
+      swarm of 5 iterations found the right basin as often as one of 40 (11
+      and 10 of the 21 trials of 200 that searched), so the trials that
+      need a swarm but no retry cost a third as much (benchmarks/README.md,
+      session 14).  0 skips it.
     patience (int | None): PSO stagnation stop (None disables).
     variant (str): PSO variant (`jaxpso.pso.VARIANTS`).
     topology (str): PSO topology (`jaxpso.pso.TOPOLOGIES`).
@@ -145,6 +154,7 @@ class TrackConfig:
   bins: int = 16
   swarm_size: int = 32
   max_iterations: int = 40
+  quick_iterations: int = 8
   patience: int | None = 10
   variant: str = "constriction"
   topology: str = "von_neumann"
@@ -180,6 +190,7 @@ class TrackConfig:
     checks.check_int(self.bins, "TrackConfig.bins", 4)  # the B-spline kernel spans 4 bins
     checks.check_int(self.refine_steps, "TrackConfig.refine_steps", 0)
     checks.check_int(self.retries, "TrackConfig.retries", 0)
+    checks.check_int(self.quick_iterations, "TrackConfig.quick_iterations", 0)
     if not 0 < checks.check_real(self.search_radius, "TrackConfig.search_radius") < math.inf:
       raise ValueError(
           f"TrackConfig.search_radius must be finite and > 0, got {self.search_radius!r}")
@@ -226,6 +237,7 @@ class TrackConfig:
     return problems.Knobs(
         search_radius=np.float32(self.search_radius),
         max_iterations=np.int32(self.max_iterations),
+        quick_iterations=np.int32(self.quick_iterations),
         patience=np.int32(2**31 - 1 if self.patience is None else self.patience),
         refine_steps=np.int32(self.refine_steps),
         accept_quality=off if self.accept_quality is None else np.float32(self.accept_quality),
@@ -239,9 +251,9 @@ def _knobs(config: TrackConfig) -> problems.Knobs:
   return jax.device_put(config.host_knobs())  # jnp.asarray compiles a program per dtype
 
 
-_RUNTIME = ("search_radius", "max_iterations", "patience", "refine_steps", "accept_quality",
-            "retry_quality", "retries", "lost_quality", "min_valid", "recovery_scale", "predict", "levels",
-            "pixels")
+_RUNTIME = ("search_radius", "max_iterations", "quick_iterations", "patience", "refine_steps",
+            "accept_quality", "retry_quality", "retries", "lost_quality", "min_valid",
+            "recovery_scale", "predict", "levels", "pixels")
 
 
 @functools.lru_cache(maxsize=256)

@@ -50,12 +50,13 @@ _GN_CHUNK, _SWARM_CHUNK = 640, 160
 class Knobs(NamedTuple):
   """`TrackConfig`'s runtime settings as arrays: changing them never recompiles.
 
-  Every field is a () array: search_radius, max_iterations, patience (a
+  Every field is a () array: search_radius, max_iterations, quick_iterations, patience (a
   huge value when off), refine_steps, accept_quality (+inf when off),
   retry_quality, retries, lost_quality, min_valid, recovery_scale, predict (bool).
   """
   search_radius: jax.Array
   max_iterations: jax.Array
+  quick_iterations: jax.Array
   patience: jax.Array
   refine_steps: jax.Array
   accept_quality: jax.Array

@@ -51,8 +51,8 @@ _AGREE_PX = 1.0
 # `track` also accepts a start within this margin of its last search's
 # quality, where that was at least _MIN_REFERENCE (`_advance_track`).
 _REFERENCE_MARGIN, _MIN_REFERENCE = 0.02, 0.8
-# The wide searches (retry, recovery) draw other swarm streams.
-_WIDE_SEED = 0x5BD1E995
+# The wide searches (retry, recovery) and align's quick search draw other swarm streams.
+_WIDE_SEED, _QUICK_SEED = 0x5BD1E995, 0x27D4EB2F
 
 
 def baseline(context: problems.Context, pyramid: list, knobs: problems.Knobs,
@@ -101,6 +101,7 @@ class Stage:
 
   Attributes:
     swarm: run the swarm first (else start from u = 0).
+    quick: one swarm of `quick_iterations` iterations (align's quick search).
     finer: the swarm searches one level finer than the coarsest.
     wide: `recovery_scale` swarms of `recovery_scale` × the iterations,
       other seeds (align's retry, track's recovery).
@@ -112,6 +113,7 @@ class Stage:
     base: 0 the start, 1 the last good estimate (`problem.Context.bases`).
   """
   swarm: bool = False
+  quick: bool = False
   finer: bool = False
   wide: bool = False
   widen: bool = False
@@ -120,11 +122,12 @@ class Stage:
   base: int = 0
 
 
-ALIGN = (Stage(), Stage(top=1), Stage(swarm=True, top=2),
+ALIGN = (Stage(), Stage(top=1), Stage(swarm=True, quick=True, top=2), Stage(swarm=True, top=2),
          Stage(swarm=True, finer=True, wide=True, top=2))
 """`align`'s stages: the start, a coarser start (accepted also where it agrees with the start),
-the search, the retry one level finer (run again with other seeds, up to
-`TrackConfig.retries` times, while it disagrees with the best)."""
+a quick search, the search, the retry one level finer (run again with other
+seeds, up to `TrackConfig.retries` times, while it disagrees with the best)."""
+_START, _COARSER, _QUICK, _SEARCH, _RETRY = range(len(ALIGN))
 TRACK = (Stage(), Stage(top=1), Stage(swarm=True, top=2), Stage(base=1),
          Stage(swarm=True, wide=True, widen=True, translation=True, top=2, base=1))
 """`track`'s stages: the start, a coarser start, the search, then the recovery from the last good estimate."""
@@ -172,18 +175,20 @@ def _pass(contexts: problems.Context, state: State, knobs: problems.Knobs, stage
   zero = jnp.zeros(count, jnp.int32)
   u, iterations, evaluations = jnp.zeros((count, dim), jnp.float32), zero, zero
   if swarm:
-    wide = _column(stages, "wide", stage)
+    wide, quick = _column(stages, "wide", stage), _column(stages, "quick", stage)
     scale = jnp.where(wide, knobs.recovery_scale, 1)
+    iterations = jnp.where(quick, knobs.quick_iterations, knobs.max_iterations * scale)
     radius = knobs.search_radius * jnp.where(wide & _column(stages, "widen", stage), scale, 1)
     stream = jnp.uint32(_WIDE_SEED) * (state.retries.astype(jnp.uint32) + 1)
-    seeds = contexts.seed ^ jnp.where(wide, stream, jnp.uint32(0))[:, None]
+    stream = jnp.where(wide, stream, jnp.where(quick, jnp.uint32(_QUICK_SEED), jnp.uint32(0)))
+    seeds = contexts.seed ^ stream[:, None]
     needed = (state.stage < len(stages)) & _column(stages, "swarm", stage)
 
     def search(_):
-      def one(context, base, seed, level, radius, scale, translation):
+      def one(context, base, seed, level, radius, iterations, scale, translation):
         return problems.Problem(context, knobs, config).swarm(
-            base, seed, level, radius, knobs.max_iterations * scale, scale, translation)
-      found = batching.each(one, contexts, base, seeds, swarm_level, radius, scale,
+            base, seed, level, radius, iterations, scale, translation)
+      found = batching.each(one, contexts, base, seeds, swarm_level, radius, iterations, scale,
                             _column(stages, "translation", stage))
       return jax.tree.map(lambda a, b: jnp.where(needed.reshape((-1,) + (1,) * (a.ndim - 1)),
                                                  a, b), found, (u, zero, zero))
@@ -213,13 +218,14 @@ def _starts(state: State, found: problems.Candidate, contexts: problems.Context,
 
 def _advance_align(state: State, found: problems.Candidate, contexts: problems.Context,
                    knobs: problems.Knobs) -> State:
-  """align's transitions: accepted start → done; else coarser start, search, retry.
+  """align's transitions: accepted start → done; else coarser start, quick search, search, retry.
 
-  After the starts, `state.best` is the start's refinement: the search is
-  compared with it, and each retry with the best so far.
+  After the starts, `state.best` is the start's refinement: the quick search
+  is compared with it, the search with the best of both, and each retry
+  with the best so far.
   """
   stage, done = state.stage, len(ALIGN)
-  starting = stage <= 1
+  starting = stage <= _COARSER
   merged, start, coarse_next = _starts(state, found, contexts, knobs)
   gap = jax.vmap(corner_gap)(found.homography, state.best.homography, contexts.template.size)
   agree = gap <= _AGREE_PX
@@ -227,19 +233,25 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
   # match of at least _MIN_REFERENCE (noise lowers a right alignment's
   # quality under accept_quality, and the swarm would run for nothing).
   accepted = ((start.quality >= knobs.accept_quality)
-              | ((stage == 1) & agree & (start.quality >= _MIN_REFERENCE)))
+              | ((stage == _COARSER) & agree & (start.quality >= _MIN_REFERENCE)))
   searched = better(found, state.best)._replace(confirmed=agree)
-  settled = (searched.quality >= knobs.retry_quality) | agree
-  again = ((stage == 3) & (merged.quality < knobs.retry_quality) & ~agree
+  # A quick search that agrees with the start confirms it only on a quality
+  # of at least _MIN_REFERENCE: in 8 iterations the swarm can stay in the
+  # start's wrong basin (Baker–Matthews, shading, σ 8: 3.6 px off at 0.65).
+  settled = ((searched.quality >= knobs.retry_quality)
+             | (agree & ((stage != _QUICK) | (searched.quality >= _MIN_REFERENCE))))
+  again = ((stage == _RETRY) & (merged.quality < knobs.retry_quality) & ~agree
            & (state.retries < knobs.retries))
   best = batching.select(starting, start._replace(confirmed=accepted),
-                         batching.select(stage == 2, searched, merged))
+                         batching.select(stage <= _SEARCH, searched, merged))
+  search = jnp.where(knobs.quick_iterations > 0, _QUICK, _SEARCH)
   following = jnp.select(
-      [stage == 0, stage == 1, stage == 2],
-      [jnp.where(accepted, done, jnp.where(coarse_next, 1, 2)), jnp.where(accepted, done, 2),
-       jnp.where(settled, done, 3)], jnp.where(again, 3, done))
-  return State(following, best, state.anchor, state.recovered, state.searched | (stage >= 2),
-               state.retries + (stage == 3))
+      [stage == _START, stage == _COARSER, stage == _QUICK, stage == _SEARCH],
+      [jnp.where(accepted, done, jnp.where(coarse_next, _COARSER, search)),
+       jnp.where(accepted, done, search), jnp.where(settled, done, _SEARCH),
+       jnp.where(settled, done, _RETRY)], jnp.where(again, _RETRY, done))
+  return State(following, best, state.anchor, state.recovered,
+               state.searched | (stage >= _QUICK), state.retries + (stage == _RETRY))
 
 
 def _advance_track(state: State, found: problems.Candidate, contexts: problems.Context,
