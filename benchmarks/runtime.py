@@ -1,6 +1,7 @@
 """Time per call once compiled, this code against an earlier checkout, interleaved.
 
-`python benchmarks/runtime.py [--reference DIR] [--rounds 2]` runs each
+`python benchmarks/runtime.py [--reference DIR] [--rounds 2] [--parts align,track,batch]
+[--name runtime]` runs each
 measurement in a fresh process (`--probe`), alternating between this
 checkout and `DIR` (e.g. a git worktree of the code before a change) for
 `--rounds` rounds, so both see the same machine load; the table gives the
@@ -141,6 +142,8 @@ def main():
   parser = argparse.ArgumentParser(description=__doc__)
   parser.add_argument("--reference", help="an earlier checkout to measure alongside")
   parser.add_argument("--rounds", type=int, default=2)
+  parser.add_argument("--parts", default=",".join(PARTS), help=",".join(PARTS))
+  parser.add_argument("--name", default="runtime", help="results/NAME.{json,md}")
   parser.add_argument("--probe", choices=sorted(PARTS), help=argparse.SUPPRESS)
   args = parser.parse_args()
   if args.probe:
@@ -151,7 +154,7 @@ def main():
     trees = {"reference": os.path.abspath(args.reference), "now": ROOT}
   measured = {name: [] for name in trees}
   for round_ in range(args.rounds):
-    for part in PARTS:
+    for part in args.parts.split(","):
       for name, checkout in trees.items():
         measured[name].append(_probe(checkout, part))
         print(f"round {round_ + 1} {part} {name}: {measured[name][-1]}", flush=True)
@@ -174,7 +177,7 @@ def main():
       values = [row["value"] for row in by_tree.get(name, [])]
       cells.append(f"{min(values):.2f}–{max(values):.2f}" if values else "–")
     lines.append(f"| {call} | {' | '.join(cells)} | {by_tree[list(trees)[-1]][-1]['detail']} |")
-  common.write("runtime", {"machine": info, "calls": calls}, "\n".join(lines) + "\n")
+  common.write(args.name, {"machine": info, "calls": calls}, "\n".join(lines) + "\n")
 
 
 if __name__ == "__main__":
