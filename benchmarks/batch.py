@@ -17,7 +17,12 @@ fraction of frames on which any region's swarm ran and the fraction of
 region-frames, and the status's precision: region-frames not LOST but more
 than 5 px off, and region-frames within 5 px reported LOST.
 
+With `--cpu-devices N` the CPU is N JAX devices and every batch is split
+over them (`track`'s default `devices`), each running its share's
+per-element programs; a lone region uses one.
+
 Usage: python benchmarks/batch.py [--sizes 1,4,16,64,256] [--frames 20] [--repeats 2]
+  [--cpu-devices N] [--name batch]
 """
 
 from __future__ import annotations
@@ -85,7 +90,11 @@ def main():
   parser.add_argument("--frames", type=int, default=20)
   parser.add_argument("--repeats", type=int, default=2)
   parser.add_argument("--name", default="batch")
+  parser.add_argument("--cpu-devices", type=int, default=1,
+                      help="run with the CPU as this many JAX devices (jax_num_cpu_devices)")
   args = parser.parse_args()
+  if args.cpu_devices > 1:  # before JAX starts its CPU backend
+    jax.config.update("jax_num_cpu_devices", args.cpu_devices)
   sizes = [int(s) for s in args.sizes.split(",")]
   sequence = jaxpso.synthetic.make_sequence(0, num_frames=args.frames, frame_shape=(240, 320),
                                             roi_size=(100, 100))
@@ -129,7 +138,8 @@ def main():
       "",
       common.machine_line(payload["machine"]),
       "",
-      f"{args.frames} frames of 240×320, {SIZE}×{SIZE} regions inside the 100×100 ROI"
+      f"{args.frames} frames of 240×320 on {len(jax.devices())} JAX device(s),"
+      f" {SIZE}×{SIZE} regions inside the 100×100 ROI"
       f" of the textured plane (intensity std ≥ {MIN_STD}), `TrackConfig()` defaults, best of"
       f" {args.repeats} timed calls after a compiling call.  \"vs alone\": the same R regions"
       f" tracked one at a time (each the best of {args.repeats}, summed) over the batch's"

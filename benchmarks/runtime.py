@@ -22,6 +22,9 @@ range over the rounds.  Every process compiles first and times afterwards.
 * track, a batch: 64 regions of 48×48 (`batch.regions`) over 20 frames of
   a 240×320 sequence, best of 3; the default and `accept_quality=0` (no
   swarm: Gauss–Newton and the check alone), ms per region-frame.
+  `batch_devices` (not in the default `--parts`): the same with the CPU's
+  cores as as many JAX devices (`jax_num_cpu_devices`), the batch split
+  over them.
 """
 
 from __future__ import annotations
@@ -111,23 +114,28 @@ def _track_rows():
   return rows
 
 
-def _batch_rows():
+def _batch_rows(cpu_devices: int = 1):
+  import jax
+  if cpu_devices > 1:  # before JAX starts its CPU backend
+    jax.config.update("jax_num_cpu_devices", cpu_devices)
   import batch  # the 48×48 regions of benchmarks/batch.py
   import jaxpso
 
   sequence = jaxpso.synthetic.make_sequence(0, num_frames=20, frame_shape=(240, 320),
                                             roi_size=(100, 100))
   boxes = batch.regions(sequence, 64)
+  where = f", the CPU as {len(jax.devices())} devices" if cpu_devices > 1 else ""
   rows = []
   for label, config in (("", jaxpso.TrackConfig()),
                         (" without swarm", jaxpso.TrackConfig(accept_quality=0.0))):
     seconds = _best_seconds(lambda: jaxpso.track(sequence.frames, boxes, config=config))
-    rows.append({"call": f"track 64 regions of 48×48{label}, ms per region-frame",
+    rows.append({"call": f"track 64 regions of 48×48{label}{where}, ms per region-frame",
                  "value": seconds / (64 * 19) * 1e3, "detail": ""})
   return rows
 
 
-PARTS = {"align": _align_rows, "track": _track_rows, "batch": _batch_rows}
+PARTS = {"align": _align_rows, "track": _track_rows, "batch": _batch_rows,
+         "batch_devices": lambda: _batch_rows(cpu_devices=os.cpu_count())}
 
 
 def _probe(checkout: str, part: str) -> list:
@@ -142,7 +150,7 @@ def main():
   parser = argparse.ArgumentParser(description=__doc__)
   parser.add_argument("--reference", help="an earlier checkout to measure alongside")
   parser.add_argument("--rounds", type=int, default=2)
-  parser.add_argument("--parts", default=",".join(PARTS), help=",".join(PARTS))
+  parser.add_argument("--parts", default="align,track,batch", help=",".join(PARTS))
   parser.add_argument("--name", default="runtime", help="results/NAME.{json,md}")
   parser.add_argument("--probe", choices=sorted(PARTS), help=argparse.SUPPRESS)
   args = parser.parse_args()

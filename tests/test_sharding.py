@@ -76,6 +76,10 @@ def _checks():
     np.testing.assert_array_equal(alone.homographies, one.homographies[2])
   config = jaxpso.TrackConfig(similarity="ncc", levels=2, swarm_size=8, max_iterations=5,
                               search_radius=6.0)
+  # A lone region stays where JAX puts it (a one-device mesh among several cost
+  # it 1.3–1.4× its time per frame); named devices are honoured.
+  assert sharding.batch_mesh(None, 1) is None
+  assert list(sharding.batch_mesh(devices[1:2], 1).devices) == [devices[1]]
   # The frame step keeps the regions split: each device's carry holds its region.
   mesh = sharding.batch_mesh(None, 4)
   template = np.ascontiguousarray(sequence.frames[0, :32, :32])
