@@ -162,17 +162,17 @@ def test_without_accept_quality_the_swarm_always_runs():
 
 def test_align_retries_where_the_retry_disagrees_with_the_best():
   # A Baker–Matthews trial at σ 16 px (benchmarks/convergence.py's protocol):
-  # the search and the one retry both miss, and disagree; another retry
-  # with other seeds finds the alignment (TrackConfig.retries).
+  # the searches and the one retry miss, and disagree; another retry with
+  # other seeds finds the alignment (TrackConfig.retries).
   source = np.float32([[0, 0], [99, 0], [99, 99], [0, 99]])
   start = cv2.getPerspectiveTransform(source, np.float32(
-      [[311.59, 313.96], [382.58, 282.79], [383.21, 399.66], [284.13, 426.93]]))
-  template = IMAGE[299:399, 292:392]
+      [[292.96, 359.77], [405.71, 321.05], [416.48, 442.19], [294.66, 432.13]]))
+  template = IMAGE[330:430, 306:406]
 
   def error(config):
     result = jaxpso.align(IMAGE, template, start, config=config)
     mapped = cv2.perspectiveTransform(source[None], np.asarray(result.homography, np.float64))[0]
-    return float(np.max(np.linalg.norm(mapped - (source + [292, 299]), axis=1))), result
+    return float(np.max(np.linalg.norm(mapped - (source + [306, 330]), axis=1))), result
 
   once, single = error(jaxpso.TrackConfig(retries=0))
   again, retried = error(jaxpso.TrackConfig())

@@ -64,14 +64,15 @@ class TrackConfig:
     swarm_size (int): particles of the swarm.
     max_iterations (int): PSO iterations at most (a baseline's per level).
     quick_iterations (int): `align`'s search first runs one swarm of this
-      many iterations; its refined best is the result where it reaches
-      `retry_quality` or agrees within 1 px with the start's refinement on
-      a quality of at least 0.8, and only otherwise the search of
-      `max_iterations` runs.  At σ = 8 px a
-      swarm of 5 iterations found the right basin as often as one of 40 (11
-      and 10 of the 21 trials of 200 that searched), so the trials that
-      need a swarm but no retry cost a third as much (benchmarks/README.md,
-      session 14).  0 skips it.
+      many iterations, then where that falls short a second one on other
+      seeds; a quick search's refined best is the result where it reaches
+      `retry_quality` or agrees within 1 px with the best so far on a
+      quality of at least 0.8, and only otherwise the search of
+      `max_iterations` runs.  At σ = 8 px a swarm of 5 iterations found the
+      right basin as often as one of 40 (11 and 10 of the 21 trials of 200
+      that searched); two quick searches that agree confirm a noisy match
+      (quality under 0.95) at 662 evaluations where the full search took
+      1 328–1 678 (benchmarks/README.md, session 14).  0 skips them.
     patience (int | None): PSO stagnation stop (None disables).
     variant (str): PSO variant (`jaxpso.pso.VARIANTS`).
     topology (str): PSO topology (`jaxpso.pso.TOPOLOGIES`).

@@ -122,12 +122,14 @@ class Stage:
   base: int = 0
 
 
-ALIGN = (Stage(), Stage(top=1), Stage(swarm=True, quick=True, top=2), Stage(swarm=True, top=2),
+ALIGN = (Stage(), Stage(top=1), Stage(swarm=True, quick=True, top=2),
+         Stage(swarm=True, quick=True, top=2), Stage(swarm=True, top=2),
          Stage(swarm=True, finer=True, wide=True, top=2))
 """`align`'s stages: the start, a coarser start (accepted also where it agrees with the start),
-a quick search, the search, the retry one level finer (run again with other
-seeds, up to `TrackConfig.retries` times, while it disagrees with the best)."""
-_START, _COARSER, _QUICK, _SEARCH, _RETRY = range(len(ALIGN))
+a quick search and a second one (other seeds), the search, the retry one
+level finer (run again with other seeds, up to `TrackConfig.retries` times,
+while it disagrees with the best)."""
+_START, _COARSER, _QUICK, _QUICK_AGAIN, _SEARCH, _RETRY = range(len(ALIGN))
 TRACK = (Stage(), Stage(top=1), Stage(swarm=True, top=2), Stage(base=1),
          Stage(swarm=True, wide=True, widen=True, translation=True, top=2, base=1))
 """`track`'s stages: the start, a coarser start, the search, then the recovery from the last good estimate."""
@@ -180,7 +182,8 @@ def _pass(contexts: problems.Context, state: State, knobs: problems.Knobs, stage
     iterations = jnp.where(quick, knobs.quick_iterations, knobs.max_iterations * scale)
     radius = knobs.search_radius * jnp.where(wide & _column(stages, "widen", stage), scale, 1)
     stream = jnp.uint32(_WIDE_SEED) * (state.retries.astype(jnp.uint32) + 1)
-    stream = jnp.where(wide, stream, jnp.where(quick, jnp.uint32(_QUICK_SEED), jnp.uint32(0)))
+    quick_stream = jnp.uint32(_QUICK_SEED) * (stage.astype(jnp.uint32) + 1)
+    stream = jnp.where(wide, stream, jnp.where(quick, quick_stream, jnp.uint32(0)))
     seeds = contexts.seed ^ stream[:, None]
     needed = (state.stage < len(stages)) & _column(stages, "swarm", stage)
 
@@ -218,11 +221,10 @@ def _starts(state: State, found: problems.Candidate, contexts: problems.Context,
 
 def _advance_align(state: State, found: problems.Candidate, contexts: problems.Context,
                    knobs: problems.Knobs) -> State:
-  """align's transitions: accepted start → done; else coarser start, quick search, search, retry.
+  """align's transitions: accepted start → done; else coarser start, quick searches, search, retry.
 
-  After the starts, `state.best` is the start's refinement: the quick search
-  is compared with it, the search with the best of both, and each retry
-  with the best so far.
+  After the starts, `state.best` is the start's refinement: the first quick
+  search is compared with it, and every later search with the best so far.
   """
   stage, done = state.stage, len(ALIGN)
   starting = stage <= _COARSER
@@ -235,21 +237,24 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
   accepted = ((start.quality >= knobs.accept_quality)
               | ((stage == _COARSER) & agree & (start.quality >= _MIN_REFERENCE)))
   searched = better(found, state.best)._replace(confirmed=agree)
-  # A quick search that agrees with the start confirms it only on a quality
+  # A search that agrees with the best so far confirms it only on a quality
   # of at least _MIN_REFERENCE: in 8 iterations the swarm can stay in the
-  # start's wrong basin (Baker–Matthews, shading, σ 8: 3.6 px off at 0.65).
+  # start's wrong basin (Baker–Matthews, shading, σ 8: 3.6 px off at 0.65),
+  # and the full search in a quick one's (gamma, σ 20: 22 px off at 0.70).
   settled = ((searched.quality >= knobs.retry_quality)
-             | (agree & ((stage != _QUICK) | (searched.quality >= _MIN_REFERENCE))))
+             | (agree & (searched.quality >= _MIN_REFERENCE)))
   again = ((stage == _RETRY) & (merged.quality < knobs.retry_quality) & ~agree
            & (state.retries < knobs.retries))
   best = batching.select(starting, start._replace(confirmed=accepted),
                          batching.select(stage <= _SEARCH, searched, merged))
   search = jnp.where(knobs.quick_iterations > 0, _QUICK, _SEARCH)
   following = jnp.select(
-      [stage == _START, stage == _COARSER, stage == _QUICK, stage == _SEARCH],
+      [stage == _START, stage == _COARSER, stage == _QUICK, stage == _QUICK_AGAIN,
+       stage == _SEARCH],
       [jnp.where(accepted, done, jnp.where(coarse_next, _COARSER, search)),
-       jnp.where(accepted, done, search), jnp.where(settled, done, _SEARCH),
-       jnp.where(settled, done, _RETRY)], jnp.where(again, _RETRY, done))
+       jnp.where(accepted, done, search), jnp.where(settled, done, _QUICK_AGAIN),
+       jnp.where(settled, done, _SEARCH), jnp.where(settled, done, _RETRY)],
+      jnp.where(again, _RETRY, done))
   return State(following, best, state.anchor, state.recovered,
                state.searched | (stage >= _QUICK), state.retries + (stage == _RETRY))
 
