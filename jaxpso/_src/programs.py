@@ -175,13 +175,7 @@ class Program:
       if compiled is not None:
         _count("loaded")
         return compiled
-    fun = self._fun
-
-    @functools.wraps(fun)
-    def program(*args, **static):  # new per compilation: JAX's caches keyed weakly on it let go with it
-      with jax.default_matmul_precision(MATMUL_PRECISION):
-        return fun(*args, **static)
-
+    program = _in_float32(self._fun)  # new per compilation: JAX's caches keyed weakly on it let go with it
     compiled = jax.jit(program, static_argnames=self._static).lower(*args, **static).compile()
     _count("compiled")
     if path is not None:
@@ -221,15 +215,18 @@ class Program:
   def _traced(self):
     """`jax.jit(fun)` for calls inside a transformation (compiler options are for top-level programs)."""
     if self._jitted is None:
-      fun = self._fun
-
-      @functools.wraps(fun)
-      def traced(*args, **static):
-        with jax.default_matmul_precision(MATMUL_PRECISION):
-          return fun(*args, **static)
-
-      self._jitted = jax.jit(traced, static_argnames=self._static)
+      self._jitted = jax.jit(_in_float32(self._fun), static_argnames=self._static)
     return self._jitted
+
+
+def _in_float32(fun):
+  """`fun` traced with its matrix products in `MATMUL_PRECISION` (a new function each call)."""
+  @functools.wraps(fun)
+  def program(*args, **static):
+    with jax.default_matmul_precision(MATMUL_PRECISION):
+      return fun(*args, **static)
+
+  return program
 
 
 def _reuse(key):
