@@ -8,7 +8,7 @@ the same machine's CPU, on the same trials, in the same process.
 * cold: the first `align` (MI) and the first 120-frame `track` in fresh
   processes, with an empty and then a warm compilation cache
   (`cold_start.run_child`): seconds from the process's start to the result.
-* align: `runtime.py`'s trials (100×100 templates of the camera image, 4
+* align: `runtime.py`'s trials (`runtime.align_trials`, `runtime.ecc`) (100×100 templates of the camera image, 4
   corners moved by N(0, σ²), σ 2 and 8 px), one template per call: median
   ms, 90th percentile over the median, share > 1 px off; ECC on the same.
 * align batches: N such templates (σ 8) in one call: alignments per second.
@@ -30,7 +30,6 @@ import tempfile
 import time
 import traceback
 
-import cv2
 import jax
 import numpy as np
 
@@ -39,31 +38,9 @@ import cold_start
 import common
 import jaxpso
 import pso_throughput
+import runtime
 import video
 from jaxpso import pso
-
-SQUARE = np.float32([[0, 0], [99, 0], [99, 99], [0, 99]])
-ECC_CRITERIA = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
-
-
-def _trials(image, sigma: float, count: int, seed: int = 0):
-  """`count` (template (100, 100), start (3, 3), origin (2,)) trials of runtime.py's kind."""
-  rng = np.random.default_rng([seed, int(sigma)])
-  out = []
-  for _ in range(count):
-    x, y = rng.integers(60, 512 - 160, 2)
-    moved = (SQUARE + [x, y] + rng.normal(0, sigma, (4, 2))).astype(np.float32)
-    out.append((image[y:y + 100, x:x + 100], cv2.getPerspectiveTransform(SQUARE, moved),
-                np.array([x, y])))
-  return out
-
-
-def _ecc(image, template, start):
-  try:
-    return cv2.findTransformECC(template, image, start.astype(np.float32),
-                                cv2.MOTION_HOMOGRAPHY, ECC_CRITERIA, None, 5)[1]
-  except cv2.error:
-    return start
 
 
 def part_cold(quick: bool) -> list[dict]:
@@ -83,12 +60,12 @@ def part_align(quick: bool) -> list[dict]:
   rows = []
   for sigma in (2.0, 8.0):
     ours, ecc, off, ecc_off = [], [], [], []
-    for template, start, origin in _trials(image, sigma, 20 if quick else 200):
+    for template, start, origin in runtime.align_trials(image, sigma, 20 if quick else 200):
       begin = time.perf_counter()
       found = np.asarray(jaxpso.align(image, template, start, config=config).homography)
       ours.append(time.perf_counter() - begin)
       begin = time.perf_counter()
-      warp = _ecc(image, template, start)
+      warp = runtime.ecc(image, template, start)
       ecc.append(time.perf_counter() - begin)
       off.append(common.corner_error(found, origin) > 1.0)
       ecc_off.append(common.corner_error(warp, origin) > 1.0)
@@ -107,7 +84,7 @@ def part_align_batches(quick: bool) -> list[dict]:
   config = jaxpso.TrackConfig(similarity="mi")
   rows = []
   for count in (16, 64) if quick else (16, 256, 1024):
-    trials = _trials(image, 8.0, count, seed=1)
+    trials = list(runtime.align_trials(image, 8.0, count, seed=1))
     templates = np.stack([t for t, _, _ in trials])
     starts = np.stack([s for _, s, _ in trials])
     images = np.broadcast_to(image, (count,) + image.shape)

@@ -23,7 +23,7 @@ range over the rounds.  Every process compiles first and times afterwards.
   a 240×320 sequence, best of 3; the default and `accept_quality=0` (no
   swarm: Gauss–Newton and the check alone), ms per region-frame.
   `batch_devices` (not in the default `--parts`): the same with the CPU's
-  cores as as many JAX devices (`jax_num_cpu_devices`), the batch split
+  cores as many JAX devices (`jax_num_cpu_devices`), the batch split
   over them.
 """
 
@@ -46,44 +46,56 @@ SIGMAS = (2.0, 8.0)
 TRIALS = 200
 
 
-def _align_rows():
+def align_trials(image, sigma: float, count: int = TRIALS, seed: int = 0):
+  """`count` (template (100, 100), start (3, 3), origin (2,)) trials: the corners moved by N(0, σ²)."""
   import cv2
+
+  square = np.float32([[0, 0], [99, 0], [99, 99], [0, 99]])
+  rng = np.random.default_rng([seed, int(sigma)])
+  for _ in range(count):
+    x, y = rng.integers(60, 512 - 160, 2)
+    moved = square + [x, y] + rng.normal(0, sigma, (4, 2)).astype(np.float32)
+    yield (image[y:y + 100, x:x + 100], cv2.getPerspectiveTransform(square, moved.astype(np.float32)),
+           np.array([x, y]))
+
+
+def ecc(image, template, start):
+  """(3, 3) OpenCV's ECC homography from `start` (100 iterations, eps 1e-6); `start` where it throws."""
+  import cv2
+
+  criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
+  try:
+    return cv2.findTransformECC(template, image, start.astype(np.float32), cv2.MOTION_HOMOGRAPHY,
+                                criteria, None, 5)[1]
+  except cv2.error:
+    return start.astype(np.float32)
+
+
+def _align_rows():
   import jaxpso
 
   image = np.asarray(jaxpso.data.load_image("camera"), np.float32)
   config = jaxpso.TrackConfig(similarity="mi")
-  square = np.float32([[0, 0], [99, 0], [99, 99], [0, 99]])
-  criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 100, 1e-6)
   jaxpso.align(image, image[100:200, 100:200], np.float32([[1, 0, 101], [0, 1, 99], [0, 0, 1]]),
                config=config)
 
   rows = []
   for sigma in SIGMAS:
-    rng = np.random.default_rng([0, int(sigma)])
-    ours, ecc, off, ecc_off = [], [], [], []
-    for _ in range(TRIALS):
-      x, y = rng.integers(60, 512 - 160, 2)
-      template = image[y:y + 100, x:x + 100]
-      moved = square + [x, y] + rng.normal(0, sigma, (4, 2)).astype(np.float32)
-      start = cv2.getPerspectiveTransform(square, moved.astype(np.float32))
+    ours, theirs, off, ecc_off = [], [], [], []
+    for template, start, origin in align_trials(image, sigma):
       begin = time.perf_counter()
       found = np.asarray(jaxpso.align(image, template, start, config=config).homography)
       ours.append(time.perf_counter() - begin)
-      warp = start.astype(np.float32)
       begin = time.perf_counter()
-      try:
-        warp = cv2.findTransformECC(template, image, warp, cv2.MOTION_HOMOGRAPHY, criteria, None,
-                                    5)[1]
-      except cv2.error:
-        pass
-      ecc.append(time.perf_counter() - begin)
-      off.append(common.corner_error(found, np.array([x, y])) > 1.0)
-      ecc_off.append(common.corner_error(warp, np.array([x, y])) > 1.0)
+      warp = ecc(image, template, start)
+      theirs.append(time.perf_counter() - begin)
+      off.append(common.corner_error(found, origin) > 1.0)
+      ecc_off.append(common.corner_error(warp, origin) > 1.0)
     rows.append({"call": f"align MI σ = {sigma:g} px, × ECC's median",
-                 "value": float(np.median(ours) / np.median(ecc)),
-                 "detail": f"{np.median(ours) * 1e3:.1f} vs {np.median(ecc) * 1e3:.1f} ms;"
+                 "value": float(np.median(ours) / np.median(theirs)),
+                 "detail": f"{np.median(ours) * 1e3:.1f} vs {np.median(theirs) * 1e3:.1f} ms;"
                            f" 90th percentile {np.percentile(ours, 90) / np.median(ours):.1f}×"
-                           f" its median; mean {np.mean(ours) / np.mean(ecc):.1f}× ECC's;"
+                           f" its median; mean {np.mean(ours) / np.mean(theirs):.1f}× ECC's;"
                            f" {np.mean(off):.0%} of trials > 1 px off (ECC {np.mean(ecc_off):.0%})"})
   return rows
 
