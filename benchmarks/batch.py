@@ -72,6 +72,19 @@ def errors(sequence, boxes, corners) -> np.ndarray:
   return out
 
 
+def timed_batch(sequence, boxes, config, repeats: int):
+  """(seconds of the first call on 2 frames, best seconds of `repeats` whole calls, the last result)."""
+  start = time.perf_counter()
+  jaxpso.track(sequence.frames[:2], boxes, config=config)
+  compile_s = time.perf_counter() - start
+  best = np.inf
+  for _ in range(repeats):
+    start = time.perf_counter()
+    result = jaxpso.track(sequence.frames, boxes, config=config)
+    best = min(best, time.perf_counter() - start)
+  return compile_s, best, result
+
+
 def alone_seconds(sequence, boxes, config, repeats: int) -> np.ndarray:
   """(R,) seconds to track each box alone (best of `repeats`; one compiled program for all)."""
   jaxpso.track(sequence.frames[:2], boxes[0], config=config)
@@ -105,14 +118,7 @@ def main():
   rows = []
   for count in sizes:
     boxes = regions(sequence, count)
-    start = time.perf_counter()
-    jaxpso.track(sequence.frames[:2], boxes, config=config)
-    compile_s = time.perf_counter() - start
-    best = np.inf
-    for _ in range(args.repeats):
-      start = time.perf_counter()
-      result = jaxpso.track(sequence.frames, boxes, config=config)
-      best = min(best, time.perf_counter() - start)
+    compile_s, best, result = timed_batch(sequence, boxes, config, args.repeats)
     searched = result.num_evaluations[:, 1:] > config.swarm_size  # (R, T - 1)
     error = errors(sequence, boxes, result.corners)
     throughput = count * (args.frames - 1) / best

@@ -8,9 +8,10 @@ the same machine's CPU, on the same trials, in the same process.
 * cold: the first `align` (MI) and the first 120-frame `track` in fresh
   processes, with an empty and then a warm compilation cache
   (`cold_start.run_child`): seconds from the process's start to the result.
-* align: `runtime.py`'s trials (`runtime.align_trials`, `runtime.ecc`) (100×100 templates of the camera image, 4
+* align: `runtime.align_trials` (100×100 templates of the camera image, 4
   corners moved by N(0, σ²), σ 2 and 8 px), one template per call: median
-  ms, 90th percentile over the median, share > 1 px off; ECC on the same.
+  ms, 90th percentile over the median, share > 1 px off; `runtime.ecc` on
+  the same.
 * align batches: N such templates (σ 8) in one call: alignments per second.
 * video: `video.py`'s hand-held clips (200–280 px regions), every frame and
   every 8th: `track` MI and NCC against chained ECC, ms per frame and P@5.
@@ -137,14 +138,7 @@ def part_track_batches(quick: bool) -> list[dict]:
   rows = []
   for count in (1, 16) if quick else (1, 16, 256, 1024):
     boxes = batch.regions(sequence, count)
-    begin = time.perf_counter()
-    jaxpso.track(sequence.frames[:2], boxes)
-    compile_s = time.perf_counter() - begin
-    seconds = np.inf
-    for _ in range(2):
-      begin = time.perf_counter()
-      result = jaxpso.track(sequence.frames, boxes)
-      seconds = min(seconds, time.perf_counter() - begin)
+    compile_s, seconds, result = batch.timed_batch(sequence, boxes, jaxpso.TrackConfig(), 2)
     errors = batch.errors(sequence, boxes, result.corners)
     rows.append({"part": "track batches", "case": f"{count} regions of 48×48, 20 frames",
                  "templates_frames_per_s": count * (frames - 1) / seconds,
