@@ -15,6 +15,7 @@ from jaxpso._src.align import AlignResult
 from jaxpso._src.align import AlignStatus
 from jaxpso._src.align import align
 from jaxpso._src.config import TrackConfig
+from jaxpso._src.detect import detect
 from jaxpso._src.baselines import METHODS
 from jaxpso._src.programs import cache_dir
 from jaxpso._src.programs import set_cache_dir
@@ -32,5 +33,5 @@ from jaxpso import warp
 __version__ = "0.1.0"
 
 __all__ = ("METHODS", "AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus",
-           "align", "baselines", "cache_dir", "data", "io", "pso", "set_cache_dir", "similarity",
+           "align", "baselines", "cache_dir", "data", "detect", "io", "pso", "set_cache_dir", "similarity",
            "synthetic", "track", "warp", "__version__")

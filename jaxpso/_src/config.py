@@ -141,6 +141,12 @@ class TrackConfig:
       (12 cells of 100 new trials), 2 to 96.3 %; the 90th percentile of the
       time at σ 12 went from 157 to 326 ms (285 ms with 2).  0 is the single
       retry (benchmarks/README.md, issue 18).
+    redetect (bool): `track` runs `jaxpso.detect` (the template searched in
+      the whole frame at any rotation and a scale of 0.5–2×) on every frame
+      it would report LOST, and takes the detection as RECOVERED where its
+      quality reaches `lost_threshold`; the next frames continue from it.
+      Off: a lost region keeps its last good estimate until the recovery
+      search around it finds the target again.
     recovery_scale (int): `track`'s recovery search has this many times the
       radius and iterations of the normal search, and as many swarms; its
       swarm searches the template's 2-D translation only, and Gauss–Newton
@@ -171,6 +177,7 @@ class TrackConfig:
   retry_quality: float = 0.95
   retries: int = 4
   recovery_scale: int = 3
+  redetect: bool = True
 
   def __post_init__(self):
     if self.similarity not in SIMILARITIES:
@@ -205,8 +212,9 @@ class TrackConfig:
       value = getattr(self, name)
       if value is not None and not checks.check_real(value, f"TrackConfig.{name}") <= 1.0:
         raise ValueError(f"TrackConfig.{name} must be <= 1, got {value!r}")
-    if not isinstance(self.predict, bool):
-      raise TypeError(f"TrackConfig.predict must be a bool, got {self.predict!r}")
+    for name in ("predict", "redetect"):
+      if not isinstance(getattr(self, name), bool):
+        raise TypeError(f"TrackConfig.{name} must be a bool, got {getattr(self, name)!r}")
     self.pso_config()  # validates the PSO settings
 
   @property
@@ -254,7 +262,7 @@ def _knobs(config: TrackConfig) -> problems.Knobs:
 
 _RUNTIME = ("search_radius", "max_iterations", "quick_iterations", "patience", "refine_steps",
             "accept_quality", "retry_quality", "retries", "lost_quality", "min_valid",
-            "recovery_scale", "predict", "levels", "pixels")
+            "recovery_scale", "predict", "redetect", "levels", "pixels")
 
 
 @functools.lru_cache(maxsize=256)

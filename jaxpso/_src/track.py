@@ -34,6 +34,7 @@ from jaxpso._src import atlas
 from jaxpso._src import baselines
 from jaxpso._src import batching
 from jaxpso._src import checks
+from jaxpso._src import detect as detection
 from jaxpso._src import homography
 from jaxpso._src import motion
 from jaxpso._src import plane
@@ -218,6 +219,39 @@ def _last_homography(carry: _Carry, constants: _Constants, config):
           carry.estimate, constants.geometry, constants.template.size)
 
 
+def _redetected(carry: _Carry, out: dict, lost, images: list, templates_: list, geometry,
+                config: TrackConfig, index: int, mesh):
+  """(carry, out) with the regions `lost` (indices) found again by `detect` in their frames.
+
+  A detection counts where its quality reaches `TrackConfig.lost_threshold`:
+  the frame's output becomes it (RECOVERED) and the next frame starts from
+  it with no motion.  On the host: it runs only on lost frames.
+  """
+  found = {int(r): detection.detect(images[r], templates_[r], config=config, key=index)
+           for r in lost}
+  found = {r: f for r, f in found.items() if float(f.quality) >= config.lost_threshold}
+  if not found:
+    return carry, out
+  carry = _Carry(*(np.array(leaf) for leaf in sharding.to_host(carry)))
+  out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
+  for r, f in found.items():
+    h = np.asarray(f.homography, np.float32)
+    estimate = h
+    if geometry is not None:  # the pose of the frame-0 → frame homography
+      from_frame0 = h.astype(np.float64) @ np.linalg.inv(geometry.template_to_frame0[r])
+      estimate = np.asarray(plane.pose_from_homography(
+          from_frame0.astype(np.float32), geometry.camera[r], geometry.normal[r]))
+    carry.estimate[r] = estimate
+    carry.velocity[r] = np.eye(estimate.shape[-1], dtype=np.float32)
+    carry.reference[r] = float(f.quality)
+    out["homography"][r], out["estimate"][r] = h, estimate
+    out["score"][r], out["quality"][r] = float(f.score), float(f.quality)
+    out["status"][r] = TrackStatus.RECOVERED
+    out["num_iterations"][r] += int(f.num_iterations)
+    out["num_evaluations"][r] += int(f.num_evaluations)
+  return sharding.split(carry, mesh), out
+
+
 # `track` moves the per-frame outputs to the host in chunks of this many
 # frames: kept on the device to the end, they grew the memory with the clip,
 # and jnp.stack compiled a T-operand concatenation per field
@@ -375,6 +409,11 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
     else:
       image = sharding.replicate(atlas.build(images[0], levels, capacity), mesh)
     carry, out = _frame_step(carry, image, constants, knobs, config=statics, mesh=mesh)
+    if config.redetect and config.method == "pso":
+      lost = np.flatnonzero(np.asarray(out["status"])[:count] == TrackStatus.LOST)
+      if lost.size:
+        carry, out = _redetected(carry, out, lost, images if sequences else images * count,
+                                 templates_, geometry, config, index, mesh)
     outputs.append(out)
     if len(outputs) == _HOST_CHUNK:
       chunks.append(_to_host(outputs))

@@ -1,0 +1,224 @@
+"""`detect`: a template found anywhere in an image, with no start.
+
+Why it works this way: a swarm over the whole frame's position, rotation and
+scale has too small a basin to find (at 160×120 positions, 24 rotations and
+a 4× scale range the right one is about one cell in 10⁴), so the search is
+split where each part is cheap.  The coarse stage is exhaustive over the
+translation: for a grid of rotations and scales the template's inner disc,
+rotated and scaled onto a pyramid level where it spans about `_PATCH_PX`
+pixels, is correlated with that level of the whole image (OpenCV's
+normalised cross-correlation, on the host: no compilation, a fraction of a
+millisecond per map).  The best peaks, one per rotation and scale, merged
+where they name one place, are the candidate basins.  Each candidate is then
+a start of `align` (Gauss–Newton from the start, a coarser start, the swarm
+where those fall short), best first, until one reaches
+`TrackConfig.accept_quality`; the result is the candidate of highest quality.
+So `detect` adds no compiled program: it runs `align`'s.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+
+from jaxpso._src import checks
+from jaxpso._src.align import AlignResult
+from jaxpso._src.align import align
+from jaxpso._src.config import TrackConfig
+
+# The template's inner disc spans about this many pixels of the level it is
+# matched on: small enough that a frame's coarse level is cheap to scan,
+# large enough that the correlation peak stands out of a textured background.
+_PATCH_PX = 16.0
+# Grid steps: 15° of rotation and a factor 2^(1/3) of scale move the patch's
+# rim by about 1.6 px of its level, inside the correlation peak.
+_ANGLE_STEP, _SCALE_RATIO = 15.0, 2.0 ** (1 / 3)
+# Two peaks name the same place when their centres are closer than this
+# fraction of the template's matched size.
+_SAME_PLACE = 0.5
+# With a mutual-information similarity the image may be inverted: peaks of
+# negative correlation count too.
+# Each candidate is refined on this many finer levels, within this many
+# pixels of each level around its place.
+_REFINE_LEVELS, _REFINE_PX = 2, 3
+_SIGNED = {"mi": False, "ncc": True, "ssd": True}
+
+
+def _checked_range(value, name: str, positive: bool) -> tuple[float, float]:
+  try:
+    low, high = (float(v) for v in value)
+  except (TypeError, ValueError):
+    raise ValueError(f"{name} must be two numbers (low, high), got {value!r}") from None
+  if not (math.isfinite(low) and math.isfinite(high)) or low > high:
+    raise ValueError(f"{name} must be finite with low <= high, got {value!r}")
+  if positive and low <= 0:
+    raise ValueError(f"{name} must be > 0, got {value!r}")
+  return low, high
+
+
+def _grid(low: float, high: float, step: float, geometric: bool) -> np.ndarray:
+  """Values from low to high (both included) at most `step` apart (a ratio when `geometric`)."""
+  if geometric:
+    count = 1 + math.ceil(math.log(high / low) / math.log(step) - 1e-9) if high > low else 1
+    return np.geomspace(low, high, count)
+  count = 1 + math.ceil((high - low) / step - 1e-9) if high > low else 1
+  return np.linspace(low, high, count)
+
+
+def _similarity(centre, scale: float, angle_deg: float, template_shape) -> np.ndarray:
+  """(3, 3) template pixel → image pixel: rotate by the angle and scale about the template's
+  centre, which lands on `centre` (x, y)."""
+  rows, cols = template_shape
+  a = math.radians(angle_deg)
+  c, s = scale * math.cos(a), scale * math.sin(a)
+  tc = np.array([(cols - 1) / 2, (rows - 1) / 2])
+  rotation = np.array([[c, -s], [s, c]])
+  h = np.eye(3)
+  h[:2, :2] = rotation
+  h[:2, 2] = np.asarray(centre) - rotation @ tc
+  return h
+
+
+def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: int,
+               signed: bool):
+  """Yields up to `count` (3, 3) float64 starts, best first, from the coarse correlation stage.
+
+  image (H, W), template (h, w): float32 grey.  `scales`, `angles` (low,
+  high): the ranges searched (angles in degrees); `signed`: anticorrelation
+  counts as a match too.
+  """
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  rows, cols = template.shape
+  disc = min(rows, cols) / math.sqrt(2.0)  # the side of the square inside the inscribed disc
+  span = angles[1] - angles[0]
+  angle_grid = _grid(angles[0], angles[1], _ANGLE_STEP, False)
+  if span >= 360.0 - 1e-6:  # a full turn: -180 and 180 are one angle
+    angle_grid = angle_grid[:-1]
+  levels = [np.ascontiguousarray(image, np.float32)]
+
+  def match(scale, angle, level, around=None):
+    """(score, (x, y) full-resolution centre) of the best place of the patch at `level`, within
+    a few level pixels of `around` when given; None where the patch does not fit."""
+    picture = levels[level]
+    factor = scale / 2 ** level  # template pixel → level pixel
+    side = max(4, int(round(disc * factor)))
+    if side + 2 > min(picture.shape):
+      return None
+    blurred = template
+    if factor < 1:  # low-pass before shrinking (a Gaussian of about half the new pixel)
+      sigma = 0.5 * math.sqrt(1 / factor ** 2 - 1)
+      blurred = cv2.GaussianBlur(template, (0, 0), sigma) if sigma > 0.3 else template
+    # level patch pixel q ← template pixel p: q = factor·R·(p − centre) + patch centre
+    to_patch = _similarity(np.full(2, (side - 1) / 2), factor, angle, template.shape)
+    patch = cv2.warpAffine(blurred, to_patch[:2], (side, side), flags=cv2.INTER_LINEAR)
+    if float(np.std(patch)) < checks.MIN_TEXTURE / 4:
+      return None
+    corner = np.zeros(2, int)
+    if around is not None:  # a window of ±_REFINE_PX level pixels around the centre
+      low = np.round(around / 2 ** level - (side - 1) / 2).astype(int) - _REFINE_PX
+      corner = np.clip(low, 0, np.array(picture.shape[::-1]) - side)
+      high = np.minimum(corner + side + 2 * _REFINE_PX, picture.shape[::-1])
+      picture = picture[corner[1]:high[1], corner[0]:high[0]]
+    scores = cv2.matchTemplate(picture, patch, cv2.TM_CCOEFF_NORMED)
+    scores = np.nan_to_num(np.abs(scores) if signed else scores, nan=-1.0)
+    y, x = np.unravel_index(int(np.argmax(scores)), scores.shape)
+    return float(scores[y, x]), (corner + [x, y] + (side - 1) / 2) * 2 ** level
+
+  def level_of(scale):
+    level = max(0, int(round(math.log2(disc * scale / _PATCH_PX))))
+    while len(levels) <= level and min(levels[-1].shape) >= 2 * _PATCH_PX:
+      levels.append(cv2.pyrDown(levels[-1]))
+    return min(level, len(levels) - 1)
+
+  peaks = []  # (score, centre, scale, angle, level)
+  for scale in _grid(scales[0], scales[1], _SCALE_RATIO, True):
+    level = level_of(scale)
+    for angle in angle_grid:
+      found = match(scale, angle, level)
+      if found is not None:
+        peaks.append(found + (scale, angle, level))
+  peaks.sort(key=lambda p: -p[0])
+  chosen = []
+  for peak in peaks:
+    if all(np.linalg.norm(peak[1] - other[1]) > _SAME_PLACE * disc * min(peak[2], other[2])
+           for other in chosen):
+      chosen.append(peak)
+    if len(chosen) == count:
+      break
+  # Each candidate refined on the finer levels, half the grid's steps each
+  # level, when it is asked for (`detect` stops at the first good one).
+  for score, place, scale, angle, level in chosen:
+    step_angle, step_scale = _ANGLE_STEP / 2, _SCALE_RATIO ** 0.5
+    for finer in range(level - 1, max(level - 1 - _REFINE_LEVELS, -1), -1):
+      tries = [(s_, a_) for s_ in (scale / step_scale, scale, scale * step_scale)
+               for a_ in (angle - step_angle, angle, angle + step_angle)]
+      results = [(match(s_, a_, finer, place), s_, a_) for s_, a_ in tries]
+      results = [r for r in results if r[0] is not None]
+      if not results:
+        break
+      (score, place), scale, angle = max(results, key=lambda r: r[0][0])
+      step_angle, step_scale = step_angle / 2, step_scale ** 0.5
+    yield _similarity(place, scale, angle, template.shape)
+
+
+def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
+           scales=(0.5, 2.0), angles=(-180.0, 180.0), candidates_tried: int = 4) -> AlignResult:
+  """Finds `template` anywhere in `image`, with no start.
+
+  The template may appear at any position, rotated in-plane within
+  `angles`, scaled within `scales` and somewhat tilted (the refinement
+  is a full homography).  A coarse correlation over the whole image picks
+  candidate places (module docstring); each is refined by `align`, best
+  first, until one reaches `TrackConfig.accept_quality`.
+
+  Args:
+    image: (H, W) grey or (H, W, 3) colour, uint8 or float in [0, 1].
+    template: (h, w) grey or colour, same conventions; no larger than the image.
+    config: `TrackConfig` of the refinement (`align`'s).
+    key: the swarm's seed (`align`'s).
+    scales: (low, high) > 0: the template's size in the image relative to its own.
+    angles: (low, high) in-plane rotation in degrees (at most a full turn).
+    candidates_tried: how many candidate places `align` refines at most.
+
+  Returns:
+    `AlignResult` of the best candidate (highest quality); its status is
+    `AlignStatus.NO_VALID_WARP` when no candidate could be scored.
+
+  Raises:
+    ValueError: a template larger than the image, a flat template, an empty
+      or non-finite range, `candidates_tried` < 1.
+  """
+  if not isinstance(config, TrackConfig):
+    raise TypeError(f"config must be a TrackConfig, got {type(config).__name__}")
+  picture = np.asarray(checks.to_gray(image, "image"))
+  patch = np.asarray(checks.to_gray(template, "template"))
+  if patch.shape[0] > picture.shape[0] or patch.shape[1] > picture.shape[1]:
+    raise ValueError(f"template of shape {patch.shape} is larger than image of shape"
+                     f" {picture.shape}")
+  checks.check_texture(np.array([np.std(patch)]), lambda _: "template")
+  scales = _checked_range(scales, "scales", positive=True)
+  angles = _checked_range(angles, "angles", positive=False)
+  if angles[1] - angles[0] > 360.0:
+    raise ValueError(f"angles must span at most 360 degrees, got {angles!r}")
+  checks.check_int(candidates_tried, "candidates_tried", 1)
+  starts = candidates(picture, patch, scales, angles, candidates_tried,
+                      _SIGNED[config.similarity])
+  # Each candidate: Gauss–Newton from the start and from the coarsest level,
+  # then one quick swarm whose result stands whatever its quality (a knob,
+  # not another program): a wrong place costs no retries.
+  quick = dataclasses.replace(config, retry_quality=-1.0, retries=0)
+  accept = math.inf if config.accept_quality is None else config.accept_quality
+  best = None
+  for start in starts:
+    found = align(picture, patch, start, config=quick, key=key)
+    if best is None or float(found.quality) > float(best.quality):
+      best = found
+    if float(found.quality) >= accept:
+      break
+  if best is None:
+    raise ValueError(f"template of shape {patch.shape} at scales {scales} does not fit image of"
+                     f" shape {picture.shape}")
+  return best
