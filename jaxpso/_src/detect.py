@@ -38,12 +38,12 @@ _ANGLE_STEP, _SCALE_RATIO = 15.0, 2.0 ** (1 / 3)
 # Two peaks name the same place when their centres are closer than this
 # fraction of the template's matched size.
 _SAME_PLACE = 0.5
-# With a mutual-information similarity the image may be inverted: peaks of
-# negative correlation count too.
 # Each candidate is refined on this many finer levels, within this many
 # pixels of each level around its place.
 _REFINE_LEVELS, _REFINE_PX = 2, 3
-_SIGNED = {"mi": False, "ncc": True, "ssd": True}
+# With mutual information the image may be inverted (MI matches it):
+# peaks of negative correlation count too.  NCC and SSD cannot match it.
+_EITHER_SIGN = {"mi": True, "ncc": False, "ssd": False}
 
 
 def _checked_range(value, name: str, positive: bool) -> tuple[float, float]:
@@ -82,11 +82,11 @@ def _similarity(centre, scale: float, angle_deg: float, template_shape) -> np.nd
 
 
 def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: int,
-               signed: bool):
+               either_sign: bool):
   """Yields up to `count` (3, 3) float64 starts, best first, from the coarse correlation stage.
 
   image (H, W), template (h, w): float32 grey.  `scales`, `angles` (low,
-  high): the ranges searched (angles in degrees); `signed`: anticorrelation
+  high): the ranges searched (angles in degrees); `either_sign`: anticorrelation
   counts as a match too.
   """
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
@@ -123,7 +123,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
       high = np.minimum(corner + side + 2 * _REFINE_PX, picture.shape[::-1])
       picture = picture[corner[1]:high[1], corner[0]:high[0]]
     scores = cv2.matchTemplate(picture, patch, cv2.TM_CCOEFF_NORMED)
-    scores = np.nan_to_num(np.abs(scores) if signed else scores, nan=-1.0)
+    scores = np.nan_to_num(np.abs(scores) if either_sign else scores, nan=-1.0)
     y, x = np.unravel_index(int(np.argmax(scores)), scores.shape)
     return float(scores[y, x]), (corner + [x, y] + (side - 1) / 2) * 2 ** level
 
@@ -205,7 +205,7 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
     raise ValueError(f"angles must span at most 360 degrees, got {angles!r}")
   checks.check_int(candidates_tried, "candidates_tried", 1)
   starts = candidates(picture, patch, scales, angles, candidates_tried,
-                      _SIGNED[config.similarity])
+                      _EITHER_SIGN[config.similarity])
   # Each candidate: Gauss–Newton from the start and from the coarsest level,
   # then one quick swarm whose result stands whatever its quality (a knob,
   # not another program): a wrong place costs no retries.
