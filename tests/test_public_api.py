@@ -42,10 +42,10 @@ def test_package_surface():
   assert jaxpso.__doc__
   assert set(jaxpso.__all__) == {"METHODS", "AlignResult", "AlignStatus", "TrackConfig",
                                  "TrackResult", "TrackStatus", "align", "baselines", "cache_dir",
-                                 "data", "io", "pso", "set_cache_dir", "similarity", "synthetic",
-                                 "track", "warp", "__version__"}
+                                 "data", "detect", "io", "pso", "set_cache_dir", "similarity",
+                                 "synthetic", "track", "warp", "__version__"}
   for name in ("AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus",
-               "align", "cache_dir", "set_cache_dir", "track"):
+               "align", "cache_dir", "detect", "set_cache_dir", "track"):
     assert getattr(jaxpso, name).__doc__
   assert jaxpso.warp is warp and jaxpso.similarity is similarity and jaxpso.pso is pso
   assert isinstance(jaxpso.__version__, str) and jaxpso.__version__.count(".") >= 1

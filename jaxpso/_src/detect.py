@@ -31,7 +31,7 @@ from jaxpso._src.config import TrackConfig
 # The template's inner disc spans about this many pixels of the level it is
 # matched on: small enough that a frame's coarse level is cheap to scan,
 # large enough that the correlation peak stands out of a textured background.
-_PATCH_PX = 16.0
+_PATCH_PX = 12.0
 # Grid steps: 15° of rotation and a factor 2^(1/3) of scale move the patch's
 # rim by about 1.6 px of its level, inside the correlation peak.
 _ANGLE_STEP, _SCALE_RATIO = 15.0, 2.0 ** (1 / 3)
@@ -207,9 +207,11 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
   starts = candidates(picture, patch, scales, angles, candidates_tried,
                       _EITHER_SIGN[config.similarity])
   # Each candidate: Gauss–Newton from the start and from the coarsest level,
-  # then one quick swarm whose result stands whatever its quality (a knob,
-  # not another program): a wrong place costs no retries.
-  quick = dataclasses.replace(config, retry_quality=-1.0, retries=0)
+  # then one quick swarm whose result stands whatever its quality (knobs,
+  # not another program): a wrong place costs no retries, and where no
+  # search finds a valid warp every later stage is as short as the quick one.
+  quick = dataclasses.replace(config, retry_quality=-1.0, retries=0, recovery_scale=1,
+                              max_iterations=max(1, config.quick_iterations))
   accept = math.inf if config.accept_quality is None else config.accept_quality
   best = None
   for start in starts:
