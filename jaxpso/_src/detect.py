@@ -164,6 +164,18 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
     yield _similarity(place, scale, angle, template.shape)
 
 
+def bounded(config: TrackConfig) -> TrackConfig:
+  """`config` whose `align` runs Gauss–Newton from the start and from the coarsest level, then
+  one quick swarm whose result stands whatever its quality.
+
+  Only knobs change (no other program): a wrong place costs no retries, and
+  where no search finds a valid warp every later stage is as short as the
+  quick one.
+  """
+  return dataclasses.replace(config, retry_quality=-1.0, retries=0, recovery_scale=1,
+                             max_iterations=max(1, config.quick_iterations))
+
+
 def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
            scales=(0.5, 2.0), angles=(-180.0, 180.0), candidates_tried: int = 4) -> AlignResult:
   """Finds `template` anywhere in `image`, with no start.
@@ -206,12 +218,7 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
   checks.check_int(candidates_tried, "candidates_tried", 1)
   starts = candidates(picture, patch, scales, angles, candidates_tried,
                       _EITHER_SIGN[config.similarity])
-  # Each candidate: Gauss–Newton from the start and from the coarsest level,
-  # then one quick swarm whose result stands whatever its quality (knobs,
-  # not another program): a wrong place costs no retries, and where no
-  # search finds a valid warp every later stage is as short as the quick one.
-  quick = dataclasses.replace(config, retry_quality=-1.0, retries=0, recovery_scale=1,
-                              max_iterations=max(1, config.quick_iterations))
+  quick = bounded(config)
   accept = math.inf if config.accept_quality is None else config.accept_quality
   best = None
   for start in starts:

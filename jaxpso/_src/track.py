@@ -35,6 +35,7 @@ from jaxpso._src import baselines
 from jaxpso._src import batching
 from jaxpso._src import checks
 from jaxpso._src import detect as detection
+from jaxpso._src import visible as visibility
 from jaxpso._src import homography
 from jaxpso._src import motion
 from jaxpso._src import plane
@@ -70,6 +71,11 @@ class TrackResult(NamedTuple):
     poses: (T, 4, 4) frame-0 → frame camera poses for motion "plane", else None.
     num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0).
     num_evaluations: (T,) similarity evaluations.
+    visible: (T,) the share of the region judged visible: 1 where the whole
+      template matched (not LOST by the frame step); on a frame it would have
+      lost, the share of `visible.GRID`² blocks inside the frame that match
+      the template at the last estimate (`visible.register_part`; 0 where none
+      or with `TrackConfig.redetect` off).
   """
   homographies: np.ndarray
   corners: np.ndarray
@@ -79,6 +85,7 @@ class TrackResult(NamedTuple):
   poses: np.ndarray | None
   num_iterations: np.ndarray
   num_evaluations: np.ndarray
+  visible: np.ndarray
 
 
 class _Constants(NamedTuple):
@@ -219,22 +226,38 @@ def _last_homography(carry: _Carry, constants: _Constants, config):
           carry.estimate, constants.geometry, constants.template.size)
 
 
-def _redetected(carry: _Carry, out: dict, lost, images: list, templates_: list, geometry,
+def _reacquired(carry: _Carry, out: dict, lost, images: list, templates_: list, geometry,
                 config: TrackConfig, index: int, mesh):
-  """(carry, out) with the regions `lost` (indices) found again by `detect` in their frames.
+  """(carry, out) with the regions `lost` (indices) registered from their visible part, or
+  found again by `detect` in their frames.
 
-  A detection counts where its quality reaches `TrackConfig.lost_threshold`:
-  the frame's output becomes it (RECOVERED) and the next frame starts from
-  it with no motion.  On the host: it runs only on lost frames.
+  The visible part (`visible.register_part`, from the last good estimate)
+  counts where its quality reaches `TrackConfig.lost_threshold` (TRACKED,
+  `out["visible"]` its share of the region), else a detection that does
+  (RECOVERED); the next frame starts from it with no motion.  On the host:
+  it runs only on lost frames.
   """
-  found = {int(r): detection.detect(images[r], templates_[r], config=config, key=index)
-           for r in lost}
-  found = {r: f for r, f in found.items() if float(f.quality) >= config.lost_threshold}
+  either_sign = config.similarity == "mi"
+  bounded = detection.bounded(config)
+  last = np.asarray(sharding.to_host(out["homography"]))
+  found, shares = {}, {}
+  for r in (int(r) for r in lost):
+    part, shares[r] = visibility.register_part(images[r], templates_[r], last[r], bounded,
+                                               index, either_sign)
+    if part is not None and float(part.quality) >= config.lost_threshold:
+      found[r] = part, TrackStatus.TRACKED
+      continue
+    whole = detection.detect(images[r], templates_[r], config=config, key=index)
+    if float(whole.quality) >= config.lost_threshold:
+      found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
+  out = dict(out, visible=np.array(out["visible"]))
+  for r, share in shares.items():
+    out["visible"][r] = share
   if not found:
     return carry, out
   carry = _Carry(*(np.array(leaf) for leaf in sharding.to_host(carry)))
   out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
-  for r, f in found.items():
+  for r, (f, status) in found.items():
     h = np.asarray(f.homography, np.float32)
     estimate = h
     if geometry is not None:  # the pose of the frame-0 → frame homography
@@ -243,10 +266,9 @@ def _redetected(carry: _Carry, out: dict, lost, images: list, templates_: list, 
           from_frame0.astype(np.float32), geometry.camera[r], geometry.normal[r]))
     carry.estimate[r] = estimate
     carry.velocity[r] = np.eye(estimate.shape[-1], dtype=np.float32)
-    carry.reference[r] = float(f.quality)
     out["homography"][r], out["estimate"][r] = h, estimate
     out["score"][r], out["quality"][r] = float(f.score), float(f.quality)
-    out["status"][r] = TrackStatus.RECOVERED
+    out["status"][r] = status
     out["num_iterations"][r] += int(f.num_iterations)
     out["num_evaluations"][r] += int(f.num_evaluations)
   return sharding.split(carry, mesh), out
@@ -394,6 +416,7 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
       homography=starts, score=np.zeros(count, np.float32),
       quality=np.ones(count, np.float32),
       status=np.full(count, TrackStatus.TRACKED, np.int32), estimate=np.asarray(first_estimate),
+      visible=np.ones(count, np.float32),
       num_iterations=np.zeros(count, np.int32),
       num_evaluations=np.zeros(count, np.int32)).items()}]
   outputs = []
@@ -409,11 +432,12 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
     else:
       image = sharding.replicate(atlas.build(images[0], levels, capacity), mesh)
     carry, out = _frame_step(carry, image, constants, knobs, config=statics, mesh=mesh)
-    if config.redetect and config.method == "pso":
-      lost = np.flatnonzero(np.asarray(out["status"])[:count] == TrackStatus.LOST)
-      if lost.size:
-        carry, out = _redetected(carry, out, lost, images if sequences else images * count,
-                                 templates_, geometry, config, index, mesh)
+    status = np.asarray(sharding.to_host(out["status"]))
+    out = dict(out, visible=(status != TrackStatus.LOST).astype(np.float32))
+    lost = np.flatnonzero(status[:count] == TrackStatus.LOST)
+    if lost.size and config.redetect and config.method == "pso":
+      carry, out = _reacquired(carry, out, lost, images if sequences else images * count,
+                               templates_, geometry, config, index, mesh)
     outputs.append(out)
     if len(outputs) == _HOST_CHUNK:
       chunks.append(_to_host(outputs))
@@ -438,5 +462,6 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
       homographies=own.astype(np.float32), corners=corners,
       scores=stacked["score"], quality=stacked["quality"], status=stacked["status"],
       poses=stacked["estimate"] if geometry is not None else None,
-      num_iterations=stacked["num_iterations"], num_evaluations=stacked["num_evaluations"])
+      num_iterations=stacked["num_iterations"], num_evaluations=stacked["num_evaluations"],
+      visible=stacked["visible"])
   return result if batched else jax.tree.map(lambda a: a[0], result)

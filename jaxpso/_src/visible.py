@@ -1,0 +1,97 @@
+"""Which part of a region is visible, and its registration from that part alone.
+
+Why: a region half covered (an occluder) or half outside the frame still
+shows enough to track, but the whole template's quality drops under
+`TrackConfig.lost_threshold`, and `track` would freeze its estimate while
+the target moves on.  Here the region is split into `GRID` × `GRID` blocks;
+at the last estimate each block is judged visible where it lies inside the
+frame and the frame, mapped back onto the template, correlates with the
+template's block (both smoothed, so that the estimate may be a pixel or two
+off).  The largest rectangle of visible blocks is a template of its own,
+registered by `align` from the estimate; its homography, moved back to the
+whole template's pixels, is the region's.  On the host, only for frames the
+tracker would report LOST.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import numpy as np
+
+from jaxpso._src import align as aligning
+from jaxpso._src import checks
+
+GRID = 4
+"""Blocks per side of the region."""
+# A block is visible where this share of it lies in the frame and its
+# smoothed correlation with the template's block reaches _BLOCK_NCC.
+_IN_FRAME, _BLOCK_NCC, _SMOOTHING_PX = 0.95, 0.5, 2.0
+MIN_VISIBLE = 0.25
+"""The smallest share of the region registered from its visible part."""
+# The visible part's shorter side at least (a template of 3 pyramid levels).
+_MIN_SIDE = 16
+
+
+def blocks(frame: np.ndarray, template: np.ndarray, h: np.ndarray,
+           either_sign: bool) -> np.ndarray:
+  """(GRID, GRID) bool: the template's blocks visible in `frame` at `h` (template → frame).
+
+  frame (H, W), template (h, w): float32 grey.  `either_sign`: an
+  anticorrelated block counts (mutual information matches an inverted image).
+  """
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  rows, cols = template.shape
+  flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+  back = cv2.warpPerspective(frame, h, (cols, rows), flags=flags)
+  inside = cv2.warpPerspective(np.ones_like(frame), h, (cols, rows), flags=flags)
+  smooth = [cv2.GaussianBlur(a, (0, 0), _SMOOTHING_PX) for a in (back, template)]
+  visible = np.zeros((GRID, GRID), bool)
+  for i, j in itertools.product(range(GRID), repeat=2):
+    window = (slice(i * rows // GRID, (i + 1) * rows // GRID),
+              slice(j * cols // GRID, (j + 1) * cols // GRID))
+    a, b = (s[window] - s[window].mean() for s in smooth)
+    spread = np.sqrt(np.sum(a * a) * np.sum(b * b))
+    ncc = np.sum(a * b) / spread if spread > 1e-12 else 0.0
+    ncc = abs(ncc) if either_sign else ncc
+    visible[i, j] = inside[window].mean() >= _IN_FRAME and ncc >= _BLOCK_NCC
+  return visible
+
+
+def largest_rectangle(visible: np.ndarray) -> tuple[int, int, int, int] | None:
+  """(row0, row1, col0, col1) block bounds of the largest all-visible rectangle; None if none."""
+  best, area = None, 0
+  n_rows, n_cols = visible.shape
+  for r0, c0 in itertools.product(range(n_rows), range(n_cols)):
+    for r1, c1 in itertools.product(range(r0 + 1, n_rows + 1), range(c0 + 1, n_cols + 1)):
+      if (r1 - r0) * (c1 - c0) > area and visible[r0:r1, c0:c1].all():
+        best, area = (r0, r1, c0, c1), (r1 - r0) * (c1 - c0)
+  return best
+
+
+def register_part(frame: np.ndarray, template: np.ndarray, h: np.ndarray, config, key,
+                  either_sign: bool):
+  """(`AlignResult` of the whole template's homography, visible share) from the visible part,
+  or (None, visible share) where less than `MIN_VISIBLE` of the region is visible.
+
+  frame (H, W), template (h, w) float32 grey; h (3, 3) the estimate.
+  """
+  visible = blocks(frame, template, h, either_sign)
+  share = float(visible.mean())
+  rectangle = largest_rectangle(visible)
+  if rectangle is None or share < MIN_VISIBLE:
+    return None, share
+  rows, cols = template.shape
+  r0, r1, c0, c1 = rectangle
+  y0, y1 = r0 * rows // GRID, r1 * rows // GRID
+  x0, x1 = c0 * cols // GRID, c1 * cols // GRID
+  if (y1 - y0) * (x1 - x0) < MIN_VISIBLE * rows * cols or min(y1 - y0, x1 - x0) < _MIN_SIDE:
+    return None, share
+  shift = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1]], np.float64)
+  part = np.ascontiguousarray(template[y0:y1, x0:x1])
+  if np.std(part) < checks.MIN_TEXTURE:
+    return None, share
+  found = aligning.align(frame, part, np.asarray(h, np.float64) @ shift, config=config, key=key)
+  whole = np.asarray(found.homography, np.float64) @ np.linalg.inv(shift)
+  return found._replace(homography=(whole / whole[2, 2]).astype(np.float32)), share
