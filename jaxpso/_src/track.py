@@ -228,12 +228,12 @@ def _last_homography(carry: _Carry, constants: _Constants, config):
 
 def _reacquired(carry: _Carry, out: dict, lost, images: list, templates_: list, geometry,
                 config: TrackConfig, index: int, mesh):
-  """(carry, out) with the regions `lost` (indices) registered from their visible part, or
-  found again by `detect` in their frames.
+  """(carry, out, {region: visible share}) with the regions `lost` (indices) registered from
+  their visible part, or found again by `detect` in their frames.
 
   The visible part (`visible.register_part`, from the last good estimate)
-  counts where its quality reaches `TrackConfig.lost_threshold` (TRACKED,
-  `out["visible"]` its share of the region), else a detection that does
+  counts where its quality reaches `TrackConfig.lost_threshold` (TRACKED),
+  else a detection that does
   (RECOVERED); the next frame starts from it with no motion.  On the host:
   it runs only on lost frames.
   """
@@ -250,11 +250,8 @@ def _reacquired(carry: _Carry, out: dict, lost, images: list, templates_: list, 
     whole = detection.detect(images[r], templates_[r], config=config, key=index)
     if float(whole.quality) >= config.lost_threshold:
       found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
-  out = dict(out, visible=np.array(out["visible"]))
-  for r, share in shares.items():
-    out["visible"][r] = share
   if not found:
-    return carry, out
+    return carry, out, shares
   carry = _Carry(*(np.array(leaf) for leaf in sharding.to_host(carry)))
   out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
   for r, (f, status) in found.items():
@@ -271,7 +268,7 @@ def _reacquired(carry: _Carry, out: dict, lost, images: list, templates_: list, 
     out["status"][r] = status
     out["num_iterations"][r] += int(f.num_iterations)
     out["num_evaluations"][r] += int(f.num_evaluations)
-  return sharding.split(carry, mesh), out
+  return sharding.split(carry, mesh), out, shares
 
 
 # `track` moves the per-frame outputs to the host in chunks of this many
@@ -416,10 +413,28 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
       homography=starts, score=np.zeros(count, np.float32),
       quality=np.ones(count, np.float32),
       status=np.full(count, TrackStatus.TRACKED, np.int32), estimate=np.asarray(first_estimate),
-      visible=np.ones(count, np.float32),
       num_iterations=np.zeros(count, np.int32),
       num_evaluations=np.zeros(count, np.int32)).items()}]
-  outputs = []
+  outputs, shares = [], {}
+  reacquire = config.redetect and config.method == "pso"
+
+  def settled(carry, step):
+    """The frame step's (carry, out), with its LOST regions re-acquired (`_reacquired`)."""
+    out, images, index = step
+    if reacquire:
+      lost = np.flatnonzero(np.asarray(sharding.to_host(out["status"]))[:count]
+                            == TrackStatus.LOST)
+      if lost.size:
+        frames = images if sequences else images * count
+        carry, out, measured = _reacquired(carry, out, lost, frames, templates_, geometry, config,
+                                           index, mesh)
+        shares.update({(r, index): share for r, share in measured.items()})
+    return carry, out
+
+  # A frame step's LOST regions are re-acquired once the next frame's pyramid
+  # is built: the host builds it while the device runs the step (waiting for
+  # each step's status first cost 15-30 % of the time per frame).
+  pending = None
   for index, raw in enumerate(iterator, start=1):
     images = [np.asarray(checks.to_gray(f, frame_name(r, index))) for r, f in enumerate(raw)]
     for r, image in enumerate(images):
@@ -431,25 +446,27 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
                              mesh)
     else:
       image = sharding.replicate(atlas.build(images[0], levels, capacity), mesh)
+    if pending is not None:
+      carry, out = settled(carry, pending)
+      outputs.append(out)
     carry, out = _frame_step(carry, image, constants, knobs, config=statics, mesh=mesh)
-    status = np.asarray(sharding.to_host(out["status"]))
-    out = dict(out, visible=(status != TrackStatus.LOST).astype(np.float32))
-    lost = np.flatnonzero(status[:count] == TrackStatus.LOST)
-    if lost.size and config.redetect and config.method == "pso":
-      carry, out = _reacquired(carry, out, lost, images if sequences else images * count,
-                               templates_, geometry, config, index, mesh)
-    outputs.append(out)
+    pending = out, images, index
     if len(outputs) == _HOST_CHUNK:
       chunks.append(_to_host(outputs))
       outputs = []
     if progress:
       of = f"/{total}" if total else ""
       print(f"\rtracking: frame {index + 1}{of}", end="", file=sys.stderr, flush=True)
+  if pending is not None:
+    outputs.append(settled(carry, pending)[1])
   if progress:
     print(file=sys.stderr)
   if outputs:
     chunks.append(_to_host(outputs))
   stacked = {k: np.concatenate([c[k][:count] for c in chunks], axis=1) for k in chunks[0]}
+  visible = (stacked["status"] != TrackStatus.LOST).astype(np.float32)
+  for (r, index), share in shares.items():
+    visible[r, index] = share
   self_loss = prepared.self_loss[:, templates.SIMILARITIES.index(config.similarity)]
   stacked["score"][:, 0] = 0.0 if config.similarity == "ssd" else -self_loss
   own = stacked["homography"].astype(np.float64)
@@ -463,5 +480,5 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
       scores=stacked["score"], quality=stacked["quality"], status=stacked["status"],
       poses=stacked["estimate"] if geometry is not None else None,
       num_iterations=stacked["num_iterations"], num_evaluations=stacked["num_evaluations"],
-      visible=stacked["visible"])
+      visible=visible)
   return result if batched else jax.tree.map(lambda a: a[0], result)
