@@ -99,6 +99,18 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
     angle_grid = angle_grid[:-1]
   levels = [np.ascontiguousarray(image, np.float32)]
 
+  blurs = {}  # one low-passed template per shrink factor, shared by its rotations
+
+  def smoothed(factor):
+    """The template low-passed before shrinking by `factor` (a Gaussian of about half the new
+    pixel), or itself."""
+    sigma = 0.5 * math.sqrt(1 / factor ** 2 - 1) if factor < 1 else 0.0
+    if sigma <= 0.3:
+      return template
+    if sigma not in blurs:
+      blurs[sigma] = cv2.GaussianBlur(template, (0, 0), sigma)
+    return blurs[sigma]
+
   def match(scale, angle, level, around=None):
     """(score, (x, y) full-resolution centre) of the best place of the patch at `level`, within
     a few level pixels of `around` when given; None where the patch does not fit."""
@@ -107,10 +119,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
     side = max(4, int(round(disc * factor)))
     if side + 2 > min(picture.shape):
       return None
-    blurred = template
-    if factor < 1:  # low-pass before shrinking (a Gaussian of about half the new pixel)
-      sigma = 0.5 * math.sqrt(1 / factor ** 2 - 1)
-      blurred = cv2.GaussianBlur(template, (0, 0), sigma) if sigma > 0.3 else template
+    blurred = smoothed(factor)
     # level patch pixel q ← template pixel p: q = factor·R·(p − centre) + patch centre
     to_patch = _similarity(np.full(2, (side - 1) / 2), factor, angle, template.shape)
     patch = cv2.warpAffine(blurred, to_patch[:2], (side, side), flags=cv2.INTER_LINEAR)

@@ -239,11 +239,11 @@ def _reacquired(carry: _Carry, out: dict, lost, images: list, templates_: list, 
   """
   either_sign = config.similarity == "mi"
   bounded = detection.bounded(config)
-  last = np.asarray(sharding.to_host(out["homography"]))
+  out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
   found, shares = {}, {}
   for r in (int(r) for r in lost):
-    part, shares[r] = visibility.register_part(images[r], templates_[r], last[r], bounded,
-                                               index, either_sign)
+    part, shares[r] = visibility.register_part(images[r], templates_[r], out["homography"][r],
+                                               bounded, index, either_sign)
     if part is not None and float(part.quality) >= config.lost_threshold:
       found[r] = part, TrackStatus.TRACKED
       continue
@@ -253,7 +253,6 @@ def _reacquired(carry: _Carry, out: dict, lost, images: list, templates_: list, 
   if not found:
     return carry, out, shares
   carry = _Carry(*(np.array(leaf) for leaf in sharding.to_host(carry)))
-  out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
   for r, (f, status) in found.items():
     h = np.asarray(f.homography, np.float32)
     estimate = h
