@@ -1,5 +1,7 @@
 """`jaxpso.detect` (a template found with no start) and `track`'s re-detection of a lost region."""
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -129,3 +131,64 @@ def test_track_redetects_a_region_that_reappears_far_away(scene):
 def test_redetect_must_be_a_bool():
   with pytest.raises(TypeError, match="TrackConfig.redetect must be a bool"):
     jaxpso.TrackConfig(redetect=1)
+
+
+def _covered_sequence(scene, covered):
+  """14 frames of a 96 px template drifting 1.5 px/frame; in frames 4–9 an occluder cut from the
+  background hides the right `covered` share of it.  (frames, truths, occluded frames)."""
+  camera = jaxpso.data.load_image("camera")
+  template = camera[120:216, 190:286].copy()
+  _, background = scene
+  occluder = 1.0 - np.ascontiguousarray(np.rot90(jaxpso.data.load_image("brick"))[:FRAME[0], :FRAME[1]])
+  truths, frames = [], []
+  for k in range(14):
+    truth = _placed(96, np.array([119.5 + 1.5 * k, 109.5 + 0.5 * k]), 1.0, 0.5 * k)
+    frame = _frame(template, truth, background)
+    if 4 <= k < 10:
+      right = truth[0, 2] + 96  # the template's right edge in the frame
+      left = int(round(right - covered * 96))
+      frame[:, left:] = occluder[:, left:]
+    truths.append(truth)
+    frames.append(frame)
+  return np.stack(frames), truths, np.arange(4, 10)
+
+
+@pytest.mark.parametrize("similarity", ["mi", "ncc"])
+def test_track_follows_the_visible_part_of_a_half_covered_region(scene, similarity):
+  frames, truths, covered = _covered_sequence(scene, 0.6)
+  roi = (72, 62, 96, 96)  # the template's box in frame 0
+  config = jaxpso.TrackConfig(similarity=similarity)
+  result = jaxpso.track(frames, roi, config=config)
+  errors = np.array([_error(h, t, 96) for h, t in zip(result.homographies, truths)])
+  assert np.all(result.status == jaxpso.TrackStatus.TRACKED), result.status
+  assert errors.max() < 0.5, errors.round(2)
+  # The 40 % left uncovered, judged in blocks: a rectangle of them is registered.
+  assert np.all((result.visible[covered] >= 0.25) & (result.visible[covered] <= 0.45)), result.visible
+  assert np.all(result.visible[:4] == 1.0)
+
+  frozen = jaxpso.track(frames, roi, config=dataclasses.replace(config, redetect=False))
+  assert np.all(frozen.status[covered] == jaxpso.TrackStatus.LOST)  # the whole template fails
+  assert np.all(frozen.visible[covered] == 0.0)
+
+
+@pytest.mark.parametrize("similarity", ["mi", "ncc"])
+def test_a_region_leaving_the_frame_is_never_tracked_off_target(scene, similarity):
+  """The region slides out over the right edge at 6 px/frame, down to a tenth inside, and back."""
+  camera = jaxpso.data.load_image("camera")
+  template = camera[120:216, 190:286].copy()
+  _, background = scene
+  steps = np.r_[np.arange(0, 24), np.arange(24, -1, -1)]
+  truths = [_placed(96, np.array([149.5 + 6.0 * s, 119.5]), 1.0, 0.0) for s in steps]
+  frames = np.stack([_frame(template, t, background) for t in truths])
+  roi = (102, 72, 96, 96)
+  result = jaxpso.track(frames, roi, config=jaxpso.TrackConfig(similarity=similarity))
+  errors = np.array([_error(h, t, 96) for h, t in zip(result.homographies, truths)])
+  inside = np.clip((FRAME[1] - 0.5 - (102 + 6.0 * steps)) / 96, 0, 1)
+  tracked = result.status != jaxpso.TrackStatus.LOST
+  report = f"errors {errors.round(1)}, status {result.status}, inside {inside.round(2)}"
+  assert np.all(errors[tracked] < 2.0), report  # never TRACKED off the target
+  assert np.all(tracked[inside >= 0.5]), report  # half inside is enough
+  np.testing.assert_allclose(result.visible[tracked & (inside > 0.75)],
+                             inside[tracked & (inside > 0.75)], atol=0.02)
+  assert np.all(result.visible[tracked & (inside < 0.75)] < 0.75)
+  assert np.all(np.isfinite(result.homographies)) and np.all(np.isfinite(result.visible))
