@@ -425,3 +425,16 @@ def test_starts_beyond_gauss_newtons_basin_need_the_swarm():
     mapped = cv2.perspectiveTransform(SOURCE[None], np.asarray(result.homography, np.float64))[0]
     found += np.sqrt(np.mean(np.sum((mapped - truth) ** 2, axis=1))) < 1.0
   assert found >= 17, found
+
+
+def test_visible_is_the_share_of_the_template_inside_the_image():
+  inside = jaxpso.align(IMAGE, TEMPLATE, _perturbed(1, 2.0), config=CONFIG, key=1)
+  assert float(inside.visible) == 1.0
+  # The template's right quarter beyond the image's right edge (the 512 px camera image).
+  crop = IMAGE[170:170 + SIZE, 464:512]
+  template = np.concatenate([crop, np.fliplr(crop)[:, :SIZE - crop.shape[1]]], axis=1)
+  truth = cv2.getPerspectiveTransform(SOURCE, SOURCE + np.float32([464, 170]))
+  found = jaxpso.align(IMAGE, template, truth, config=CONFIG, key=1)
+  assert abs(float(found.visible) - 0.75) <= 1 / 16, found.visible
+  mapped = cv2.perspectiveTransform(SOURCE[None], np.asarray(found.homography, np.float64))[0]
+  assert np.sqrt(np.mean(np.sum((mapped - SOURCE - [464, 170]) ** 2, axis=1))) < 0.5

@@ -60,12 +60,13 @@ def test_occluded_region_is_lost_then_reacquired(case):
   # way); with the library's recovery none of the 960 hidden frames of
   # benchmarks/occlusion.py was, so a hidden frame not LOST is a regression.
   np.testing.assert_array_equal(status[start:stop], jaxpso.TrackStatus.LOST, err_msg=report)
-  # A LOST frame keeps the last good estimate: the previous frame's
-  # homography, finite (a NaN would be kept forever).
+  # A LOST frame's estimate is finite (a NaN would be kept forever) and
+  # coasts: each lost frame moves it less than the one before, starting from
+  # the last tracked frame's motion.
   assert np.all(np.isfinite(result.homographies)) and np.all(np.isfinite(result.corners)), report
+  moves = _corner_rms(result.corners[1:], result.corners[:-1])  # moves[k]: frame k → k + 1
   for frame in np.flatnonzero(lost):
-    np.testing.assert_array_equal(result.homographies[frame], result.homographies[frame - 1],
-                                  err_msg=f"frame {frame} LOST but the estimate moved; {report}")
+    assert moves[frame - 1] <= 1.05 * moves[frame - 2] + 0.02, (frame, moves.round(2), report)
 
   # After it: re-acquired (TRACKED or RECOVERED within 5 px) in one of the 5
   # frames after the occlusion, and followed from there to the end.

@@ -18,6 +18,7 @@ import pytest
 import jaxpso
 from jaxpso._src import track as track_module
 from jaxpso._src import programs
+from jaxpso._src.config import COAST_DECAY
 
 
 def programs_made() -> int:
@@ -273,13 +274,16 @@ def test_frames_of_noise_are_lost_and_the_target_reacquired(similarity):
   errors = _corner_rms(result.corners, sequence.corners)
   np.testing.assert_array_equal(result.status[:4], jaxpso.TrackStatus.TRACKED)
   assert errors[:4].max() < 1.0, errors
-  # The target is hidden: LOST, and the last good estimate (frame 3) is kept.
+  # The target is hidden: LOST, and the estimate coasts on frame 3's motion,
+  # damped by COAST_DECAY per lost frame.
   np.testing.assert_array_equal(
       result.status[hidden], jaxpso.TrackStatus.LOST,
       err_msg=f"{similarity}: frames of pure noise not declared LOST;"
               f" quality {result.quality[hidden]}, corner error {errors[hidden]} px")
-  for frame in hidden:
-    np.testing.assert_array_equal(result.homographies[frame], result.homographies[3])
+  moves = np.diff(result.corners[2:hidden[-1] + 1], axis=0)  # frames 2→3, 3→4, 4→5: (3, 4, 2)
+  for k, move in enumerate(moves[1:]):
+    np.testing.assert_allclose(move, COAST_DECAY ** k * moves[0], atol=0.02 + 0.02 * np.abs(moves[0]).max())
+  assert np.abs(moves[0]).max() > 0.3  # the region moved before it was lost
   # Back in view at frame 6 (it moved ≤ 2.4 px since frame 3): re-acquired
   # within two frames and followed to the end.
   later = slice(7, None)
@@ -288,6 +292,17 @@ def test_frames_of_noise_are_lost_and_the_target_reacquired(similarity):
   assert errors[later].max() < 2.0, (
       f"{similarity}: not re-acquired after the noise; corner errors {errors} px,"
       f" status {result.status}, quality {result.quality}")
+
+
+def test_a_lost_region_keeps_its_last_estimate_without_coasting():
+  sequence = _sequence("slow")
+  frames = sequence.frames.copy()
+  frames[[4, 5]] = np.random.default_rng(0).uniform(0.0, 1.0, (2,) + FRAME_SHAPE)
+  config = dataclasses.replace(HOMOGRAPHY["mi"], coast=False)
+  result = jaxpso.track(frames, sequence.roi, config=config, key=0)
+  np.testing.assert_array_equal(result.status[4:6], jaxpso.TrackStatus.LOST)
+  for frame in (4, 5):
+    np.testing.assert_array_equal(result.homographies[frame], result.homographies[3])
 
 
 @pytest.mark.parametrize("similarity", SIMILARITIES)
@@ -337,12 +352,10 @@ def test_a_target_leaving_the_frame_is_lost_not_an_error(similarity):
   np.testing.assert_array_equal(result.status[gone], jaxpso.TrackStatus.LOST)
   # NCC scores these frames 0.47–0.74 on other texture: TRACKED under the
   # former threshold 0.5 for every similarity, LOST under NCC's own 0.8.
-  last_good = None
-  for frame, status in enumerate(result.status):
-    if status == jaxpso.TrackStatus.LOST:
-      np.testing.assert_array_equal(result.homographies[frame], result.homographies[last_good])
-    else:
-      last_good = frame
+  # A LOST frame coasts: it moves the estimate less than the frame before.
+  moves = _corner_rms(result.corners[1:], result.corners[:-1])  # moves[k]: frame k → k + 1
+  for frame in np.flatnonzero(result.status == jaxpso.TrackStatus.LOST):
+    assert moves[frame - 1] <= 1.05 * moves[frame - 2] + 0.02, (frame, moves.round(2))
   again = jaxpso.track(frames, roi, config=config, key=0)
   for field, value in result._asdict().items():
     if value is not None:

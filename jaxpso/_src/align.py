@@ -63,6 +63,9 @@ class AlignResult(NamedTuple):
     pose: (4, 4) camera motion from the view of `init_homography` to the
       image's for motion "plane" (translation in units of the plane's
       distance), else None.
+    visible: () float32 the share of the template that the homography puts
+      inside the image (`homography.inside_share`); the quality is judged on
+      that share alone.
   """
   homography: jax.Array
   score: jax.Array
@@ -71,26 +74,31 @@ class AlignResult(NamedTuple):
   num_iterations: jax.Array
   num_evaluations: jax.Array
   pose: jax.Array | None = None
+  visible: jax.Array | None = None
 
 
-def _result(found: problems.Candidate, bases, geometry, offsets, config) -> AlignResult:
+def _result(found: problems.Candidate, bases, geometry, offsets, sizes, config) -> AlignResult:
   """`AlignResult` of a batch's best candidates, homographies moved from window to image pixels
   (and for motion "plane", `geometry` given, the pose from the base poses `bases`).
+
+  offsets (N, 4): each window's top-left pixel in its image and the image's
+  (w, h); sizes (N, 2) the templates' (h, w).
 
   An unbatched `align` takes element 0 inside the program (`single`):
   indexing it after the program was one more dispatch, 0.1–0.15 ms of a
   6 ms alignment."""
-  def one(found, base, geometry, offset):
+  def one(found, base, geometry, offset, size):
     pose = None if geometry is None else motion.plane_pose(found.u, base, geometry, config.dof)
     to_image = homography.translation(offset[0], offset[1])
     status = jnp.where(jnp.isfinite(found.loss), AlignStatus.SUCCESS, AlignStatus.NO_VALID_WARP)
+    h = problems.normalized(to_image @ found.homography)
     return AlignResult(
-        homography=problems.normalized(to_image @ found.homography),
-        score=score_sign(config) * found.loss, quality=found.quality,
+        homography=h, score=score_sign(config) * found.loss, quality=found.quality,
         status=status.astype(jnp.int32), num_iterations=found.num_iterations,
-        num_evaluations=found.num_evaluations, pose=pose)
+        num_evaluations=found.num_evaluations, pose=pose,
+        visible=homography.inside_share(h, size, offset[2:]))
 
-  return batching.each(one, found, bases[:, 0], geometry, offsets)
+  return batching.each(one, found, bases[:, 0], geometry, offsets, sizes)
 
 
 @functools.partial(programs.Program, static_argnames=("config", "single", "mesh"))
@@ -100,7 +108,7 @@ def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, s
   """`align` of a batch of N: every argument has the leading N axis (knobs excepted).
 
   images: the `atlas.Atlas` of each image's window, whose top-left pixel is
-  at `offsets` (N, 2) in the image; bases (N, 2, 3, 3) the start in window
+  at `offsets` (N, 4)[:, :2] in the image of (w, h) `offsets[:, 2:]`; bases (N, 2, 3, 3) the start in window
   coordinates twice (or (N, 2, 4, 4) identity poses, with `geometry` the
   `motion.Plane`s in window coordinates); seeds (N, 2) uint32.  With
   `single` (N = 1), the result without the N axis; with a `mesh` of several
@@ -110,7 +118,7 @@ def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, s
     contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
                              geometry, seeds)
     found = register.run(contexts, knobs, "align", config).best
-    return _result(found, bases, geometry, offsets, config)
+    return _result(found, bases, geometry, offsets, prepared.size, config)
 
   return _on_devices(share, mesh, single, images, prepared, bases, geometry, seeds, offsets, knobs)
 
@@ -124,7 +132,7 @@ def _align_baseline(images: atlas.Atlas, pyramids: list, prepared: templates.Tem
     contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
                              geometry, seeds)
     found = batching.each(lambda c, p: register.baseline(c, p, knobs, config), contexts, pyramids)
-    return _result(found, bases, geometry, offsets, config)
+    return _result(found, bases, geometry, offsets, prepared.size, config)
 
   return _on_devices(share, mesh, single, images, pyramids, prepared, bases, geometry, seeds,
                      offsets, knobs)
@@ -211,9 +219,10 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
   size = max(atlas.capacity(sum(h * w for h, w in atlas.level_shapes(crop.shape, c.levels)))
              for crop, c in zip(crops, configs))
   pyramids = [atlas.build(crop, c.levels, size) for crop, c in zip(crops, configs)]
-  offsets = np.array([w[:2] for w in windows], np.float32)
+  offsets = np.array([(*w[:2], im.shape[1], im.shape[0]) for w, im in zip(windows, images)],
+                     np.float32)
   to_window = np.stack([np.array([[1, 0, -x], [0, 1, -y], [0, 0, 1]], np.float64)
-                        for x, y in offsets])
+                        for x, y in offsets[:, :2]])
   geometry = None
   if config.motion == "plane":
     geometry = motion.checked_plane_geometries(camera, plane_normal, images[0].shape, starts,

@@ -39,6 +39,9 @@ COARSEST_PX, AUTO_LEVELS = 12, atlas.MAX_LEVELS
 
 # `TrackConfig.lost_quality=None`: the quality below which a frame is lost.
 LOST_QUALITY = {"mi": 0.65, "ncc": 0.8, "ssd": 0.5}
+COAST_DECAY = 0.8
+"""`TrackConfig.coast`: the k-th lost frame (k = 0, 1, ...) moves the estimate by this to the
+k-th power of the last inter-frame motion (in all about 5 frames' worth)."""
 
 
 @dataclasses.dataclass(frozen=True)
@@ -147,6 +150,10 @@ class TrackConfig:
       quality reaches `lost_threshold`; the next frames continue from it.
       Off: a lost region keeps its last good estimate until the recovery
       search around it finds the target again.
+    coast (bool): on a frame `track` reports LOST, the region's estimate
+      moves on with its last inter-frame motion, damped by `COAST_DECAY`
+      per lost frame (a target hidden while it moves is looked for, and
+      reported, where it went); off: the last good estimate is kept.
     recovery_scale (int): `track`'s recovery search has this many times the
       radius and iterations of the normal search, and as many swarms; its
       swarm searches the template's 2-D translation only, and Gauss–Newton
@@ -178,6 +185,7 @@ class TrackConfig:
   retries: int = 4
   recovery_scale: int = 3
   redetect: bool = True
+  coast: bool = True
 
   def __post_init__(self):
     if self.similarity not in SIMILARITIES:
@@ -212,7 +220,7 @@ class TrackConfig:
       value = getattr(self, name)
       if value is not None and not checks.check_real(value, f"TrackConfig.{name}") <= 1.0:
         raise ValueError(f"TrackConfig.{name} must be <= 1, got {value!r}")
-    for name in ("predict", "redetect"):
+    for name in ("predict", "redetect", "coast"):
       if not isinstance(getattr(self, name), bool):
         raise TypeError(f"TrackConfig.{name} must be a bool, got {getattr(self, name)!r}")
     self.pso_config()  # validates the PSO settings
@@ -262,7 +270,7 @@ def _knobs(config: TrackConfig) -> problems.Knobs:
 
 _RUNTIME = ("search_radius", "max_iterations", "quick_iterations", "patience", "refine_steps",
             "accept_quality", "retry_quality", "retries", "lost_quality", "min_valid",
-            "recovery_scale", "predict", "redetect", "levels", "pixels")
+            "recovery_scale", "predict", "redetect", "coast", "levels", "pixels")
 
 
 @functools.lru_cache(maxsize=256)

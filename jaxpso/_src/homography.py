@@ -421,6 +421,23 @@ def homography_to_corner_offsets(h, shape) -> jax.Array:
   return (mapped - corners).reshape(mapped.shape[:-2] + (8,))
 
 
+# `inside_share` counts the centres of this many × this many cells of the template.
+_INSIDE_GRID = 16
+
+
+def inside_share(h, size, image_size) -> jax.Array:
+  """() float32 the share of a template of `size` (h, w) that the homography h (3, 3) maps inside
+  an image of `image_size` (w, h): of the centres of `_INSIDE_GRID`² cells over it (unchecked,
+  for compiled programs)."""
+  cells = (jnp.arange(_INSIDE_GRID, dtype=jnp.float32) + 0.5) * (1.0 / _INSIDE_GRID)
+  ys, xs = jnp.meshgrid(cells * (size[0] - 1), cells * (size[1] - 1), indexing="ij")
+  mapped = h @ jnp.stack([xs.ravel(), ys.ravel(), jnp.ones(xs.size, jnp.float32)])
+  ahead = mapped[2] > 0
+  xy = mapped[:2] / jnp.where(ahead, mapped[2], 1.0)
+  inside = ahead & jnp.all((xy >= 0) & (xy <= jnp.asarray(image_size)[:, None] - 1), axis=0)
+  return jnp.mean(inside.astype(jnp.float32))
+
+
 def corner_error(h_est, h_true, shape) -> jax.Array:
   """Root-mean-square corner displacement between two homographies.
 

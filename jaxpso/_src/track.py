@@ -11,8 +11,11 @@ swarm and Gauss–Newton from its best;
 when the quality stays under `TrackConfig.lost_threshold`, a recovery
 search around the last good estimate: wider swarms over the template's
 translation, then Gauss–Newton), each only for the regions that need it.
-A frame whose quality stays low is LOST: the last good estimate is kept and
-the motion prediction is reset.  For motion "plane" the camera pose is
+A frame whose quality stays low is LOST: the program keeps the last good
+estimate and resets the motion prediction; on the host the region is then
+registered from its visible part or found again by `detect`, else its
+estimate coasts on its last motion (`TrackConfig.redetect`, `coast`).  For
+motion "plane" the camera pose is
 accumulated, T̂ ← T(x) · T̂.  With a gradient baseline
 (`TrackConfig.method`) the registration is that method's, without recovery.
 Neither the frame size nor the regions' sizes enter the compiled program.
@@ -46,6 +49,7 @@ from jaxpso._src import sharding
 from jaxpso._src import swarm_random
 from jaxpso._src import template as templates
 from jaxpso._src import track_inputs
+from jaxpso._src.config import COAST_DECAY
 from jaxpso._src.config import TrackConfig
 from jaxpso._src.config import score_sign
 
@@ -54,7 +58,7 @@ class TrackStatus(enum.IntEnum):
   """Per-frame outcome of `track`; 0 is success."""
   TRACKED = 0
   RECOVERED = 1  # found by the wider recovery search
-  LOST = 2  # quality too low: the last good estimate is kept
+  LOST = 2  # too little of it seen: the last good estimate, coasting (`TrackConfig.coast`)
 
 
 class TrackResult(NamedTuple):
@@ -72,7 +76,8 @@ class TrackResult(NamedTuple):
     num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0).
     num_evaluations: (T,) similarity evaluations.
     visible: (T,) the share of the region judged visible: where the whole
-      template matched, the share of the estimate inside the frame; on a
+      template matched, the share of the estimate inside the frame
+      (`homography.inside_share`); on a
       frame the step lost or matched less than 75 % inside the frame, the
       share of `visible.GRID`² blocks inside the frame that match the
       template at the estimate (`visible.register_part`; 1 after a
@@ -208,9 +213,13 @@ def _regions_step(carry: _Carry, image: atlas.Atlas, constants: _Constants, knob
             estimate, constants.geometry, constants.template.size)
   h = batching.select(lost, jax.vmap(problems.normalized)(_last_homography(carry, constants,
                                                                             config)), h)
+  frame_size = image.levels[..., 0, 1:3].astype(jnp.float32)  # (w, h), shared or per region
+  inside = jax.vmap(homography.inside_share)(
+      h, constants.template.size, jnp.broadcast_to(frame_size, (h.shape[0], 2)))
   outputs = dict(homography=h, score=score_sign(config) * found.loss, quality=quality,
                  status=status.astype(jnp.int32), estimate=estimate,
-                 num_iterations=found.num_iterations, num_evaluations=found.num_evaluations)
+                 num_iterations=found.num_iterations, num_evaluations=found.num_evaluations,
+                 inside=inside)
   # A search's match sets the reference; an accepted start only raises it.
   reference = jnp.where(lost, carry.reference,
                         jnp.where(searched, quality, jnp.maximum(carry.reference, quality)))
@@ -241,13 +250,27 @@ _PART_REACH_PX = 4.0
 
 
 class _Recent(NamedTuple):
-  """On the host, per region: the last frame's homography (R, 3, 3) float64, its motion from
-  the frame before (R, 3, 3; the identity after a LOST frame), the RMS corner motion of its
-  last tracked step (R,) and the frames since its last estimate that was not LOST (R,)."""
+  """On the host, per region: the last frame's homography (R, 3, 3) float64; the homographies
+  before and after its last step between two frames not LOST (R, 3, 3 each; both the
+  re-acquired one after a loss), whose motion the region is predicted to go on with; the
+  frames since the last estimate not LOST (R,).
+
+  Per frame only copies: matrix products and inverses on the host, in
+  OpenBLAS, cost the device step's threads 0.3-0.6 ms a frame (video.py).
+  """
   homography: np.ndarray
-  motion: np.ndarray
-  speed: np.ndarray
+  before: np.ndarray
+  after: np.ndarray
   gap: np.ndarray
+
+  def motion(self, r: int) -> np.ndarray:
+    """(3, 3) region r's last inter-frame motion, h[2, 2] = 1."""
+    m = self.after[r] @ np.linalg.inv(self.before[r])
+    return m / m[2, 2]
+
+  def speed(self, r: int, shape) -> float:
+    """RMS corner motion of region r's last step (a template of `shape`)."""
+    return _corner_distance(self.after[r], self.before[r], shape)
 
 
 def _corner_distance(a, b, shape) -> float:
@@ -257,25 +280,33 @@ def _corner_distance(a, b, shape) -> float:
   return float(np.sqrt(np.mean(np.sum((pa[:2] / pa[2] - pb[:2] / pb[2]) ** 2, axis=0))))
 
 
-def _in_frame(h: np.ndarray, shapes: list, frame_shape) -> np.ndarray:
-  """(N,) the share of each region (a template of `shapes[n]` at the homography h[n]) inside the
-  frame; h (N, 3, 3)."""
-  rows, cols = frame_shape
-  rects = np.stack([np.c_[homography.host_rect_corners(shape), np.ones(4)] for shape in shapes])
-  mapped = np.asarray(h, np.float64) @ np.swapaxes(rects, -1, -2)  # (N, 3, 4)
-  corners = np.swapaxes(mapped[:, :2] / mapped[:, 2:], -1, -2)  # (N, 4, 2)
-  inside = np.all((mapped[:, 2] > 0) & (corners[..., 0] >= 0) & (corners[..., 0] <= cols - 1)
-                  & (corners[..., 1] >= 0) & (corners[..., 1] <= rows - 1), axis=-1)
-  shares = np.ones(len(shapes))
-  for n in np.flatnonzero(~inside):
-    shares[n] = visibility.in_frame(corners[n], frame_shape)
-  return shares
+def _pose(h: np.ndarray, geometry, r: int) -> np.ndarray:
+  """Region r's estimate for the (3, 3) homography h: h itself, or for motion "plane" the pose of
+  its frame-0 → frame homography."""
+  if geometry is None:
+    return np.asarray(h, np.float32)
+  from_frame0 = np.asarray(h, np.float64) @ np.linalg.inv(geometry.template_to_frame0[r])
+  return np.asarray(plane.pose_from_homography(from_frame0.astype(np.float32), geometry.camera[r],
+                                               geometry.normal[r]))
+
+
+def _coasted(recent: _Recent, r: int, shape) -> np.ndarray:
+  """(3, 3) region r's homography on its next lost frame: the last one moved by `COAST_DECAY`^k of
+  its last motion (to first order), k the lost frames before it; unmoved after a motion of
+  more than a quarter of the template's side."""
+  motion_ = recent.motion(r)
+  if recent.speed(r, shape) > max(shape) / 4:
+    return recent.homography[r]
+  step = np.eye(3) + COAST_DECAY ** recent.gap[r] * (motion_ - np.eye(3))
+  h = step @ recent.homography[r]
+  return h / h[2, 2]
 
 
 def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent, images: list,
                 templates_: list, geometry, config: TrackConfig, index: int, mesh):
   """(carry, out, {region: visible share}) with the regions `check` (indices) registered from
-  their visible part, or found again by `detect` in their frames, or else LOST.
+  their visible part, or found again by `detect` in their frames, or else LOST (the estimate
+  coasting with `TrackConfig.coast`).
 
   `check` holds the regions the frame step lost and those whose match lies
   less than `_MIN_IN_FRAME` inside the frame; `before` is the carry before
@@ -283,7 +314,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   estimate) counts where its quality reaches `TrackConfig.lost_threshold`
   and it lies within reach of the step's match or of the motion (TRACKED), else a
   detection that reaches it (RECOVERED; the next frame starts from it with
-  no motion).  On the host: it runs only for the regions in `check`.
+  no motion).  On the host: it runs only for the regions in `check`; with
+  `TrackConfig.redetect` off only the coasting.
   """
   either_sign = config.similarity == "mi"
   bounded = detection.bounded(config)
@@ -292,12 +324,15 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   found, shares = {}, {}
   for r in (int(r) for r in check):
     shape = templates_[r].shape
+    if not config.redetect:
+      _keep_lost(carry, before, out, recent, geometry, config, r, shape)
+      continue
     start = out["homography"][r]  # the step's match, or the last estimate moved on by its motion
     if out["status"][r] == TrackStatus.LOST:
-      start = recent.motion[r] @ recent.homography[r]
+      start = _coasted(recent, r, shape)
     part, shares[r] = visibility.register_part(images[r], templates_[r], start, bounded, index,
                                                either_sign)
-    reach = _PART_REACH_PX + 2.0 * recent.speed[r] * (recent.gap[r] + 1)
+    reach = _PART_REACH_PX + 2.0 * recent.speed(r, shape) * (recent.gap[r] + 1)
     if (part is not None and float(part.quality) >= config.lost_threshold
         and (_corner_distance(part.homography, recent.homography[r], shape) <= reach
              or _corner_distance(part.homography, out["homography"][r], shape) <= _PART_REACH_PX)):
@@ -306,19 +341,11 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
     whole = detection.detect(images[r], templates_[r], config=config, key=index)
     if float(whole.quality) >= config.lost_threshold:
       found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
-    elif out["status"][r] != TrackStatus.LOST:  # too little of it inside the frame to tell
-      last = np.array(sharding.to_host(before.estimate))[r]
-      carry.estimate[r], carry.velocity[r] = last, np.eye(last.shape[-1], dtype=np.float32)
-      carry.reference[r] = np.array(sharding.to_host(before.reference))[r]
-      out["homography"][r], out["estimate"][r] = recent.homography[r], last
-      out["status"][r] = TrackStatus.LOST
+    else:
+      _keep_lost(carry, before, out, recent, geometry, config, r, shape)
   for r, (f, status) in found.items():
     h = np.asarray(f.homography, np.float32)
-    estimate = h
-    if geometry is not None:  # the pose of the frame-0 → frame homography
-      from_frame0 = h.astype(np.float64) @ np.linalg.inv(geometry.template_to_frame0[r])
-      estimate = np.asarray(plane.pose_from_homography(
-          from_frame0.astype(np.float32), geometry.camera[r], geometry.normal[r]))
+    estimate = _pose(h, geometry, r)
     carry.estimate[r] = estimate
     velocity = np.eye(estimate.shape[-1], dtype=np.float32)
     if status == TrackStatus.TRACKED and recent.gap[r] == 0:
@@ -333,19 +360,28 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   return sharding.split(carry, mesh), out, shares
 
 
-def _moved(recent: _Recent, h: np.ndarray, status: np.ndarray, shapes: list) -> _Recent:
+def _keep_lost(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geometry,
+               config: TrackConfig, r: int, shape) -> None:
+  """Region r LOST in `carry` and `out` (host copies, changed in place): its last estimate, or
+  with `TrackConfig.coast` that estimate moved on (`_coasted`)."""
+  if out["status"][r] != TrackStatus.LOST:  # too little of it inside the frame to tell
+    carry.reference[r] = np.array(sharding.to_host(before.reference))[r]
+    out["status"][r] = TrackStatus.LOST
+  h = _coasted(recent, r, shape) if config.coast else recent.homography[r]
+  estimate = _pose(h, geometry, r) if config.coast else np.array(sharding.to_host(before.estimate))[r]
+  carry.estimate[r], carry.velocity[r] = estimate, np.eye(estimate.shape[-1], dtype=np.float32)
+  out["homography"][r], out["estimate"][r] = h, estimate
+
+
+def _moved(recent: _Recent, h: np.ndarray, status: np.ndarray) -> _Recent:
   """`recent` after a frame whose homographies are h (R, 3, 3) and statuses `status` (R,)."""
   h = np.asarray(h, np.float64)
-  motion_, speed, gap = np.broadcast_to(np.eye(3), h.shape).copy(), recent.speed.copy(), recent.gap.copy()
-  for r, shape in enumerate(shapes):
-    if status[r] == TrackStatus.LOST:
-      gap[r] += 1
-      continue
-    if gap[r] == 0:
-      motion_[r] = h[r] @ np.linalg.inv(recent.homography[r])
-    speed[r] = _corner_distance(h[r], recent.homography[r], shape) if gap[r] == 0 else 0.0
-    gap[r] = 0
-  return _Recent(h, motion_, speed, gap)
+  lost = status == TrackStatus.LOST
+  step = (~lost & (recent.gap == 0))[:, None, None]
+  kept = lost[:, None, None]
+  before = np.where(kept, recent.before, np.where(step, recent.homography, h))
+  after = np.where(kept, recent.after, h)
+  return _Recent(h, before, after, np.where(lost, recent.gap + 1, 0))
 
 
 # `track` moves the per-frame outputs to the host in chunks of this many
@@ -491,35 +527,33 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
       quality=np.ones(count, np.float32),
       status=np.full(count, TrackStatus.TRACKED, np.int32), estimate=np.asarray(first_estimate),
       num_iterations=np.zeros(count, np.int32),
-      num_evaluations=np.zeros(count, np.int32)).items()}]
+      num_evaluations=np.zeros(count, np.int32), inside=np.ones(count, np.float32)).items()}]
   outputs, shares = [], {}
-  reacquire = config.redetect and config.method == "pso"
-  recent = _Recent(starts.astype(np.float64), np.broadcast_to(np.eye(3), (count, 3, 3)),
-                   np.zeros(count), np.zeros(count, np.int64))
+  reacquire = (config.redetect or config.coast) and config.method == "pso"
+  recent = _Recent(*[starts.astype(np.float64)] * 3, np.zeros(count, np.int64))
 
   def settled(carry, step):
     """The frame step's (carry, out), with its LOST regions and those mostly outside the frame
     re-acquired (`_reacquired`)."""
-    nonlocal recent
     out, images, index, before = step
     if not reacquire:
       return carry, out
-    host = sharding.to_host({k: out[k] for k in ("status", "homography")})
-    status, h = host["status"][:count], host["homography"][:count]
-    check = np.flatnonzero((status == TrackStatus.LOST)
-                           | (_in_frame(h, shapes, frame_shape) < _MIN_IN_FRAME))
+    host = sharding.to_host({k: out[k] for k in ("status", "inside")})
+    check = host["status"][:count] == TrackStatus.LOST
+    if config.redetect:
+      check |= host["inside"][:count] < _MIN_IN_FRAME
+    check = np.flatnonzero(check)
     if check.size:
       frames = images if sequences else images * count
       carry, out, measured = _reacquired(carry, before, out, check, recent, frames, templates_,
                                          geometry, config, index, mesh)
       shares.update({(r, index): share for r, share in measured.items()})
-      status, h = out["status"][:count], out["homography"][:count]
-    recent = _moved(recent, h, status, shapes)
     return carry, out
 
   # A frame step's LOST regions are re-acquired once the next frame's pyramid
   # is built: the host builds it while the device runs the step (waiting for
-  # each step's status first cost 15-30 % of the time per frame).
+  # each step's status first cost 15-30 % of the time per frame); the host's
+  # record of the motion follows once the next step is running.
   pending = None
   for index, raw in enumerate(iterator, start=1):
     images = [np.asarray(checks.to_gray(f, frame_name(r, index))) for r, f in enumerate(raw)]
@@ -536,8 +570,11 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
       carry, out = settled(carry, pending)
       outputs.append(out)
     before = carry
-    carry, out = _frame_step(carry, image, constants, knobs, config=statics, mesh=mesh)
-    pending = out, images, index, before
+    carry, step_out = _frame_step(carry, image, constants, knobs, config=statics, mesh=mesh)
+    if pending is not None and reacquire:
+      host = sharding.to_host({k: out[k] for k in ("status", "homography")})
+      recent = _moved(recent, host["homography"][:count], host["status"][:count])
+    pending = step_out, images, index, before
     if len(outputs) == _HOST_CHUNK:
       chunks.append(_to_host(outputs))
       outputs = []
@@ -551,11 +588,8 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
   if outputs:
     chunks.append(_to_host(outputs))
   stacked = {k: np.concatenate([c[k][:count] for c in chunks], axis=1) for k in chunks[0]}
-  visible = np.zeros(stacked["status"].shape, np.float32)
-  for r, shape in enumerate(shapes):
-    tracked = np.flatnonzero(stacked["status"][r] != TrackStatus.LOST)
-    visible[r, tracked] = _in_frame(stacked["homography"][r, tracked], [shape] * tracked.size,
-                                    frame_shape)
+  inside = stacked.pop("inside")
+  visible = np.where(stacked["status"] != TrackStatus.LOST, inside, 0.0).astype(np.float32)
   for (r, index), share in shares.items():
     visible[r, index] = share
   self_loss = prepared.self_loss[:, templates.SIMILARITIES.index(config.similarity)]

@@ -68,22 +68,6 @@ def blocks(frame: np.ndarray, template: np.ndarray, h: np.ndarray,
   return visible
 
 
-def in_frame(corners: np.ndarray, frame_shape) -> float:
-  """The share of the quadrilateral `corners` (4, 2) that lies inside a frame of (H, W); 0 where
-  the quadrilateral is not convex (a degenerate homography) or has no area."""
-  import cv2
-
-  quad = np.asarray(corners, np.float32).reshape(4, 1, 2)
-  area = cv2.contourArea(quad)
-  if not (np.all(np.isfinite(quad)) and area > 1.0 and cv2.isContourConvex(quad)):
-    return 0.0
-  rows, cols = frame_shape
-  frame = np.array([[-0.5, -0.5], [cols - 0.5, -0.5], [cols - 0.5, rows - 0.5], [-0.5, rows - 0.5]],
-                   np.float32).reshape(4, 1, 2)
-  inside, _ = cv2.intersectConvexConvex(quad, frame)
-  return float(min(inside / area, 1.0))
-
-
 def largest_rectangle(visible: np.ndarray) -> tuple[int, int, int, int] | None:
   """(row0, row1, col0, col1) block bounds of the largest rectangle with at least `_FILLED` of its
   blocks visible; None if no block is.
