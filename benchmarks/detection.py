@@ -43,6 +43,9 @@ VARIANTS = {
     "ncc": dict(config=jaxpso.TrackConfig(similarity="ncc")),
     "candidates 1": dict(candidates_tried=1),
     "candidates 8": dict(candidates_tried=8),
+    "swarm 8": dict(config=jaxpso.TrackConfig(swarm_size=8)),
+    "swarm 16": dict(config=jaxpso.TrackConfig(swarm_size=16)),
+    "swarm 64": dict(config=jaxpso.TrackConfig(swarm_size=64)),
 }
 
 
