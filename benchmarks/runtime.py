@@ -1,7 +1,7 @@
 """Time per call once compiled, this code against an earlier checkout, interleaved.
 
 `python benchmarks/runtime.py [--reference DIR] [--rounds 2] [--parts align,track,batch]
-[--name runtime]` runs each
+[--name runtime] [--trials 40] [--cases clean,…]` runs each
 measurement in a fresh process (`--probe`), alternating between this
 checkout and `DIR` (e.g. a git worktree of the code before a change) for
 `--rounds` rounds, so both see the same machine load; the table gives the
@@ -25,11 +25,29 @@ range over the rounds.  Every process compiles first and times afterwards.
   `batch_devices` (not in the default `--parts`): the same with the CPU's
   cores as many JAX devices (`jax_num_cpu_devices`), the batch split
   over them.
+* cases (not in the default `--parts`; e.g. `--parts cases --name
+  runtime_cases`): `--trials` per case of `--cases`, where the match is
+  imperfect and align runs its retries.  A 100×100 template cut from a CC0
+  photograph (camera, brick, gravel, grass in turn; `$JAXPSO_IMAGES`, as
+  video.py), the start its corners moved by N(0, 8²), the image that
+  photograph: clean; gamma (the image to the power 2^U(−1, 1)); shading
+  (× a ramp 0.4–1 across it, random direction); noise (+ N(0, 0.08²),
+  clipped); inverted (1 − image: beyond NCC and ECC).  Trial k of each is
+  clean's trial k, the image changed.  real_pairs: a second view, the photograph zoomed by 0.7–0.8
+  and its plane tilted 20–30° about a random in-plane axis through the
+  centre (K·diag(z, z, 1)·R'·K⁻¹, f = 500 px, R' = R with e₃ for its third
+  column), blurred (σ 1–2 px), relit (gain 0.6–1.3, bias ±0.1, × a smooth
+  field 0.8–1.2) and JPEG'd (quality 20–30); the template from a region
+  that stays in view, the start N(0, 4²) off.  ECC, align MI and align NCC
+  on every trial in turn, each warmed up once; success: corner RMS ≤ 1 px;
+  a table per checkout of the times pooled over the rounds.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
+import itertools
 import json
 import os
 import subprocess
@@ -44,6 +62,11 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 SIGMAS = (2.0, 8.0)
 TRIALS = 200
+IMAGES = os.environ.get("JAXPSO_IMAGES", os.path.join(HERE, "..", "..", "shared", "data", "images"))
+PHOTOS = ("camera", "brick", "gravel", "grass")
+CASES = ("clean", "gamma", "shading", "noise", "inverted", "real_pairs")
+FOCAL = 500.0
+SQUARE = np.float32([[0, 0], [99, 0], [99, 99], [0, 99]])
 
 
 def align_trials(image, sigma: float, count: int = TRIALS, seed: int = 0):
@@ -146,14 +169,148 @@ def _batch_rows(cpu_devices: int = 1):
   return rows
 
 
-PARTS = {"align": _align_rows, "track": _track_rows, "batch": _batch_rows,
-         "batch_devices": lambda: _batch_rows(cpu_devices=os.cpu_count())}
+def _relit(case: str, photo, rng):
+  """(H, W) float32 `photo` (H, W) changed as photometric `case` says."""
+  if case == "gamma":
+    photo = photo ** 2.0 ** rng.uniform(-1, 1)
+  elif case == "shading":
+    rows, cols = np.mgrid[:photo.shape[0], :photo.shape[1]]
+    angle = rng.uniform(0, 2 * np.pi)
+    ramp = np.cos(angle) * cols + np.sin(angle) * rows
+    photo = photo * (0.4 + 0.6 * (ramp - ramp.min()) / np.ptp(ramp))
+  elif case == "noise":
+    photo = np.clip(photo + rng.normal(0, 0.08, photo.shape), 0, 1)
+  elif case == "inverted":
+    photo = 1 - photo
+  return photo.astype(np.float32)
 
 
-def _probe(checkout: str, part: str) -> list:
+def _second_view(photo, rng):
+  """(image (H, W) float32, photo pixel → image pixel (3, 3)): `photo` (H, W) zoomed, tilted,
+  blurred, relit and JPEG'd."""
+  import cv2
+
+  rows, cols = photo.shape
+  camera = np.array([[FOCAL, 0, (cols - 1) / 2], [0, FOCAL, (rows - 1) / 2], [0, 0, 1]])
+  axis = rng.uniform(0, 2 * np.pi)
+  angle = np.deg2rad(rng.uniform(20, 30))
+  tilt = cv2.Rodrigues(angle * np.array([np.cos(axis), np.sin(axis), 0]))[0]
+  tilt[:, 2] = [0, 0, 1]  # the plane z = 1 turned about its point on the axis
+  zoom = rng.uniform(0.7, 0.8)
+  view = camera @ np.diag([zoom, zoom, 1]) @ tilt @ np.linalg.inv(camera)
+  image = cv2.warpPerspective(photo, view, (cols, rows), flags=cv2.INTER_LINEAR,
+                              borderMode=cv2.BORDER_REFLECT)
+  image = cv2.GaussianBlur(image, (0, 0), rng.uniform(1, 2))
+  field = cv2.resize(rng.uniform(0.8, 1.2, (3, 3)).astype(np.float32), (cols, rows),
+                     interpolation=cv2.INTER_CUBIC)
+  image = np.clip((image * rng.uniform(0.6, 1.3) + rng.uniform(-0.1, 0.1)) * field, 0, 1)
+  jpeg = cv2.imencode(".jpg", np.round(image * 255).astype(np.uint8),
+                      [cv2.IMWRITE_JPEG_QUALITY, int(rng.integers(20, 31))])[1]
+  return cv2.imdecode(jpeg, cv2.IMREAD_GRAYSCALE).astype(np.float32) / 255, view / view[2, 2]
+
+
+def case_trials(case: str, photos, count: int, seed: int = 0):
+  """`count` (image (H, W), template (100, 100), start (3, 3), truth (3, 3)) trials of `case`."""
+  import cv2
+
+  for k in range(count):
+    rng = np.random.default_rng([seed, k])
+    photo = photos[k % len(photos)]
+    image, view, sigma = photo, np.eye(3), 8.0
+    if case == "real_pairs":
+      (image, view), sigma = _second_view(photo, rng), 4.0
+    while True:  # a template that stays in view
+      x, y = rng.integers(60, 512 - 160, 2)
+      truth = view @ np.array([[1, 0, x], [0, 1, y], [0, 0, 1.0]])
+      corners = cv2.perspectiveTransform(SQUARE[None].astype(np.float64), truth)[0]
+      if np.all((corners >= 8) & (corners <= np.array(photo.shape[::-1]) - 9)):
+        break
+    moved = corners + rng.normal(0, sigma, (4, 2))
+    start = cv2.getPerspectiveTransform(SQUARE, moved.astype(np.float32))
+    if case != "real_pairs":
+      image = _relit(case, photo, rng)
+    yield image, photo[y:y + 100, x:x + 100], start, truth
+
+
+def _corner_rms(h, truth) -> float:
+  """RMS distance (px) of the 100×100 template's corners mapped by h from truth's (3, 3) each."""
+  import cv2
+
+  source = SQUARE[None].astype(np.float64)
+  mapped = [cv2.perspectiveTransform(source, np.asarray(m, np.float64))[0] for m in (h, truth)]
+  return float(np.sqrt(np.mean(np.sum((mapped[0] - mapped[1]) ** 2, -1))))
+
+
+def _cases_rows(cases: list, count: int, budgets: list):
+  """Per case and method a row: the median ms, and each trial's seconds and success; align with
+  each of `budgets` (`TrackConfig.max_evaluations`: "default", "none" or an int)."""
+  import cv2
+  import jaxpso
+
+  photos = [cv2.imread(os.path.join(IMAGES, name + ".png"), cv2.IMREAD_GRAYSCALE)
+            .astype(np.float32) / 255 for name in PHOTOS]
+  methods = {"ECC": ecc}
+  for similarity, budget in itertools.product(("mi", "ncc"), budgets):
+    config = jaxpso.TrackConfig(similarity=similarity)
+    if budget != "default":
+      config = dataclasses.replace(config, max_evaluations=None if budget == "none" else budget)
+    name = f"align {similarity.upper()}" + ("" if budget == "default" else f", budget {budget}")
+    methods[name] = lambda *a, config=config: np.asarray(jaxpso.align(*a, config=config).homography)
+  warmup = next(case_trials("clean", photos, 1))[:3]
+  for method in methods.values():
+    method(*warmup)
+  rows = []
+  for case in cases:
+    seconds, ok = {name: [] for name in methods}, {name: [] for name in methods}
+    for image, template, start, truth in case_trials(case, photos, count):
+      for name, method in methods.items():
+        begin = time.perf_counter()
+        found = method(image, template, start)
+        seconds[name].append(time.perf_counter() - begin)
+        ok[name].append(_corner_rms(found, truth) <= 1.0)
+    rows += [{"call": f"cases {case}: {name}, median ms",
+              "value": float(np.median(seconds[name]) * 1e3),
+              "detail": f"{np.mean(ok[name]):.0%} within 1 px", "case": case, "method": name,
+              "seconds": seconds[name], "ok": [bool(o) for o in ok[name]]} for name in methods]
+  return rows
+
+
+def _cases_lines(rows: list, rounds: int) -> list:
+  """The markdown table of the cases part's `rows` of every round, their times pooled."""
+  pooled = {}
+  for row in rows:
+    seconds, ok = pooled.setdefault((row["case"], row["method"]), ([], []))
+    seconds += row["seconds"]
+    ok += row["ok"]
+  lines = ["| case | method | trials | success | median ms | p90 ms | p99 ms | max ms"
+           " | median / ECC's | p99 / ECC's |", "|---" * 10 + "|"]
+  for (case, name), (seconds, ok) in pooled.items():
+    ms, ecc_ms = np.array(seconds) * 1e3, np.array(pooled[case, "ECC"][0]) * 1e3
+    median, p90, p99 = np.percentile(ms, [50, 90, 99])
+    lines.append(f"| {case} | {name} | {len(ok) // rounds} | {np.mean(ok):.0%} | {median:.2f}"
+                 f" | {p90:.2f} | {p99:.2f} | {ms.max():.2f} | {median / np.median(ecc_ms):.2f}"
+                 f" | {p99 / np.percentile(ecc_ms, 99):.2f} |")
+  return lines
+
+
+PARTS = {"align": lambda options: _align_rows(), "track": lambda options: _track_rows(),
+         "batch": lambda options: _batch_rows(),
+         "batch_devices": lambda options: _batch_rows(cpu_devices=os.cpu_count()),
+         "cases": lambda options: _cases_rows(options.cases.split(","), options.trials,
+                                              _budgets(options.budgets))}
+
+
+def _budgets(text: str) -> list:
+  """`--budgets`: "default", "none" (no cap) or an int each."""
+  return [b if b in ("default", "none") else int(b) for b in text.split(",")]
+
+
+def _probe(checkout: str, part: str, options) -> list:
   """`part`'s rows measured in a fresh process importing jaxpso from `checkout`."""
   env = dict(os.environ, PYTHONPATH=checkout)
-  out = subprocess.run([sys.executable, os.path.abspath(__file__), "--probe", part],
+  out = subprocess.run([sys.executable, os.path.abspath(__file__), "--probe", part,
+                        "--trials", str(options.trials), "--cases", options.cases,
+                        "--budgets", options.budgets],
                        env=env, cwd=checkout, check=True, capture_output=True, text=True).stdout
   return json.loads(out.strip().splitlines()[-1])
 
@@ -164,10 +321,16 @@ def main():
   parser.add_argument("--rounds", type=int, default=2)
   parser.add_argument("--parts", default="align,track,batch", help=",".join(PARTS))
   parser.add_argument("--name", default="runtime", help="results/NAME.{json,md}")
+  parser.add_argument("--trials", type=int, default=40, help="cases: trials per case")
+  parser.add_argument("--cases", default=",".join(CASES), help="cases: " + ",".join(CASES))
+  parser.add_argument("--budgets", default="default",
+                      help="cases: align's max_evaluations, 'default' or ints, e.g. default,8000")
   parser.add_argument("--probe", choices=sorted(PARTS), help=argparse.SUPPRESS)
   args = parser.parse_args()
+  if set(args.cases.split(",")) - set(CASES):
+    parser.error(f"--cases: each of {','.join(CASES)}")
   if args.probe:
-    print(json.dumps(PARTS[args.probe]()))
+    print(json.dumps(PARTS[args.probe](args)))
     return
   trees = {"now": ROOT}
   if args.reference:
@@ -176,7 +339,7 @@ def main():
   for round_ in range(args.rounds):
     for part in args.parts.split(","):
       for name, checkout in trees.items():
-        measured[name].append(_probe(checkout, part))
+        measured[name].append(_probe(checkout, part, args))
         print(f"round {round_ + 1} {part} {name}: {measured[name][-1]}", flush=True)
   calls = {}
   for name in trees:
@@ -197,6 +360,12 @@ def main():
       values = [row["value"] for row in by_tree.get(name, [])]
       cells.append(f"{min(values):.2f}–{max(values):.2f}" if values else "–")
     lines.append(f"| {call} | {' | '.join(cells)} | {by_tree[list(trees)[-1]][-1]['detail']} |")
+  for name in trees:
+    rows = [row for rounds in measured[name] for row in rounds if "case" in row]
+    if rows:
+      lines += ["", f"Cases, {name}: {args.trials} trials per case, each timed once a round, the"
+                f" {args.rounds} rounds pooled; success: corner RMS ≤ 1 px.", "",
+                *_cases_lines(rows, args.rounds)]
   common.write(args.name, {"machine": info, "calls": calls}, "\n".join(lines) + "\n")
 
 

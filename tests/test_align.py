@@ -1,5 +1,6 @@
 """align: recovers perturbed homographies (Baker–Matthews style) on the embedded image."""
 
+import dataclasses
 import os
 import re
 import subprocess
@@ -438,3 +439,34 @@ def test_visible_is_the_share_of_the_template_inside_the_image():
   assert abs(float(found.visible) - 0.75) <= 1 / 16, found.visible
   mapped = cv2.perspectiveTransform(SOURCE[None], np.asarray(found.homography, np.float64))[0]
   assert np.sqrt(np.mean(np.sum((mapped - SOURCE - [464, 170]) ** 2, axis=1))) < 0.5
+
+
+def test_a_budget_ends_a_hopeless_search_with_its_best_and_says_so():
+  """NCC cannot match an inverted image: every retry runs.  A budget stops the stages once it
+  is spent (checked between stages: at most one stage more) and the status says so."""
+  inverted = 1.0 - IMAGE
+  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "similarity": "ncc"})
+  free = jaxpso.align(inverted, TEMPLATE, _perturbed(7, 3.0), config=config, key=1)
+  budget = 600
+  capped = jaxpso.align(inverted, TEMPLATE, _perturbed(7, 3.0), key=1,
+                        config=dataclasses.replace(config, max_evaluations=budget))
+  assert int(free.status) == jaxpso.AlignStatus.SUCCESS
+  assert int(capped.status) == jaxpso.AlignStatus.BUDGET
+  stage = CONFIG.swarm_size * CONFIG.max_iterations + 100  # the search and its refinement
+  assert budget <= int(capped.num_evaluations) <= budget + stage < int(free.num_evaluations)
+  assert np.isfinite(float(capped.quality)) and np.all(np.isfinite(capped.homography))
+  # A batch of hopeless elements: each ends within its budget, each status says so.
+  batch = jaxpso.align(np.stack([inverted] * 3), np.stack([TEMPLATE] * 3),
+                       np.stack([_perturbed(s, 3.0) for s in (7, 8, 9)]), key=1,
+                       config=dataclasses.replace(config, max_evaluations=budget))
+  np.testing.assert_array_equal(batch.status, jaxpso.AlignStatus.BUDGET)
+  assert np.all(np.asarray(batch.num_evaluations) <= budget + stage)
+
+
+def test_a_budget_does_not_touch_a_call_within_it():
+  start = _perturbed(3, 3.0)
+  free = jaxpso.align(IMAGE, TEMPLATE, start, config=CONFIG, key=5)
+  capped = jaxpso.align(IMAGE, TEMPLATE, start, key=5,
+                        config=dataclasses.replace(CONFIG, max_evaluations=int(free.num_evaluations) + 1))
+  for field in ("homography", "quality", "status", "num_evaluations"):
+    np.testing.assert_array_equal(getattr(capped, field), getattr(free, field), err_msg=field)

@@ -145,6 +145,12 @@ def test_align(call, error, argument, value):
     ("accept-quality", dict(accept_quality=1.5), ValueError, "accept_quality", "1.5"),
     ("predict", dict(predict="yes"), TypeError, "predict", "'yes'"),
     ("recovery", dict(recovery_scale=0), ValueError, "recovery_scale", "0"),
+    ("budget-0", dict(max_evaluations=0), ValueError, "max_evaluations", "0"),
+    ("budget-negative", dict(max_evaluations=-100), ValueError, "max_evaluations", "-100"),
+    ("budget-float", dict(max_evaluations=5000.0), ValueError, "max_evaluations", "5000.0"),
+    ("budget-bool", dict(max_evaluations=True), ValueError, "max_evaluations", "True"),
+    ("budget-huge", dict(max_evaluations=2**31), ValueError, "max_evaluations", "2147483648"),
+    ("coast", dict(coast=1), TypeError, "coast", "1"),
 ))
 def test_track_config(fields, error, argument, value):
   _raises(lambda: jaxpso.TrackConfig(**fields), error, argument, value)

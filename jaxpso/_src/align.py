@@ -46,6 +46,7 @@ class AlignStatus(enum.IntEnum):
   """Outcome of an alignment; 0 is success."""
   SUCCESS = 0
   NO_VALID_WARP = 1
+  BUDGET = 2  # `TrackConfig.max_evaluations` spent before the search settled: its best so far
 
 
 class AlignResult(NamedTuple):
@@ -77,20 +78,23 @@ class AlignResult(NamedTuple):
   visible: jax.Array | None = None
 
 
-def _result(found: problems.Candidate, bases, geometry, offsets, sizes, config) -> AlignResult:
+def _result(found: problems.Candidate, exhausted, bases, geometry, offsets, sizes,
+            config) -> AlignResult:
   """`AlignResult` of a batch's best candidates, homographies moved from window to image pixels
   (and for motion "plane", `geometry` given, the pose from the base poses `bases`).
 
-  offsets (N, 4): each window's top-left pixel in its image and the image's
-  (w, h); sizes (N, 2) the templates' (h, w).
+  exhausted (N,) bool: the budget ended the search; offsets (N, 4): each
+  window's top-left pixel in its image and the image's (w, h); sizes (N, 2)
+  the templates' (h, w).
 
   An unbatched `align` takes element 0 inside the program (`single`):
   indexing it after the program was one more dispatch, 0.1–0.15 ms of a
   6 ms alignment."""
-  def one(found, base, geometry, offset, size):
+  def one(found, exhausted, base, geometry, offset, size):
     pose = None if geometry is None else motion.plane_pose(found.u, base, geometry, config.dof)
     to_image = homography.translation(offset[0], offset[1])
-    status = jnp.where(jnp.isfinite(found.loss), AlignStatus.SUCCESS, AlignStatus.NO_VALID_WARP)
+    status = jnp.where(~jnp.isfinite(found.loss), AlignStatus.NO_VALID_WARP,
+                       jnp.where(exhausted, AlignStatus.BUDGET, AlignStatus.SUCCESS))
     h = problems.normalized(to_image @ found.homography)
     return AlignResult(
         homography=h, score=score_sign(config) * found.loss, quality=found.quality,
@@ -98,7 +102,7 @@ def _result(found: problems.Candidate, bases, geometry, offsets, sizes, config) 
         num_evaluations=found.num_evaluations, pose=pose,
         visible=homography.inside_share(h, size, offset[2:]))
 
-  return batching.each(one, found, bases[:, 0], geometry, offsets, sizes)
+  return batching.each(one, found, exhausted, bases[:, 0], geometry, offsets, sizes)
 
 
 @functools.partial(programs.Program, static_argnames=("config", "single", "mesh"))
@@ -117,8 +121,8 @@ def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, s
   def share(images, prepared, bases, geometry, seeds, offsets, knobs):
     contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
                              geometry, seeds)
-    found = register.run(contexts, knobs, "align", config).best
-    return _result(found, bases, geometry, offsets, prepared.size, config)
+    state = register.run(contexts, knobs, "align", config)
+    return _result(state.best, state.exhausted, bases, geometry, offsets, prepared.size, config)
 
   return _on_devices(share, mesh, single, images, prepared, bases, geometry, seeds, offsets, knobs)
 
@@ -132,7 +136,8 @@ def _align_baseline(images: atlas.Atlas, pyramids: list, prepared: templates.Tem
     contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
                              geometry, seeds)
     found = batching.each(lambda c, p: register.baseline(c, p, knobs, config), contexts, pyramids)
-    return _result(found, bases, geometry, offsets, prepared.size, config)
+    return _result(found, jnp.zeros(found.loss.shape, bool), bases, geometry, offsets,
+                   prepared.size, config)
 
   return _on_devices(share, mesh, single, images, pyramids, prepared, bases, geometry, seeds,
                      offsets, knobs)

@@ -150,6 +150,16 @@ class TrackConfig:
       quality reaches `lost_threshold`; the next frames continue from it.
       Off: a lost region keeps its last good estimate until the recovery
       search around it finds the target again.
+    max_evaluations (int or None): the budget of one `align` call, or of
+      one region's frame in `track`, in similarity evaluations (particles ×
+      iterations plus refinement steps, `AlignResult.num_evaluations`): the
+      stages stop once they have spent it and the best so far is the result,
+      `AlignStatus.BUDGET` where the search had not settled.  Checked
+      between stages, so a call overshoots by at most its last stage.  None:
+      no cap.  20 000 lets `align` run its searches and one or two
+      retries: it keeps every cell of benchmarks/results/convergence.md
+      (8 000, one retry, lost one shading trial at σ 12) and cuts the
+      slowest calls of benchmarks/results/runtime_cases.md by 1.3–2×.
     coast (bool): on a frame `track` reports LOST, the region's estimate
       moves on with its last inter-frame motion, damped by `COAST_DECAY`
       per lost frame (a target hidden while it moves is looked for, and
@@ -186,6 +196,7 @@ class TrackConfig:
   recovery_scale: int = 3
   redetect: bool = True
   coast: bool = True
+  max_evaluations: int | None = 20000
 
   def __post_init__(self):
     if self.similarity not in SIMILARITIES:
@@ -220,6 +231,10 @@ class TrackConfig:
       value = getattr(self, name)
       if value is not None and not checks.check_real(value, f"TrackConfig.{name}") <= 1.0:
         raise ValueError(f"TrackConfig.{name} must be <= 1, got {value!r}")
+    if self.max_evaluations is not None and checks.check_int(
+        self.max_evaluations, "TrackConfig.max_evaluations", 1) >= 2**31 - 1:
+      raise ValueError(f"TrackConfig.max_evaluations must be < 2**31 - 1 (or None), got"
+                       f" {self.max_evaluations!r}")
     for name in ("predict", "redetect", "coast"):
       if not isinstance(getattr(self, name), bool):
         raise TypeError(f"TrackConfig.{name} must be a bool, got {getattr(self, name)!r}")
@@ -260,7 +275,9 @@ class TrackConfig:
         accept_quality=off if self.accept_quality is None else np.float32(self.accept_quality),
         retry_quality=np.float32(self.retry_quality), retries=np.int32(self.retries),
         lost_quality=np.float32(self.lost_threshold), min_valid=np.float32(self.min_valid),
-        recovery_scale=np.int32(self.recovery_scale), predict=np.bool_(self.predict))
+        recovery_scale=np.int32(self.recovery_scale), predict=np.bool_(self.predict),
+        max_evaluations=np.int32(2**31 - 1 if self.max_evaluations is None
+                                 else self.max_evaluations))
 
 
 @functools.lru_cache(maxsize=256)
@@ -270,7 +287,8 @@ def _knobs(config: TrackConfig) -> problems.Knobs:
 
 _RUNTIME = ("search_radius", "max_iterations", "quick_iterations", "patience", "refine_steps",
             "accept_quality", "retry_quality", "retries", "lost_quality", "min_valid",
-            "recovery_scale", "predict", "redetect", "coast", "levels", "pixels")
+            "recovery_scale", "predict", "redetect", "coast", "max_evaluations", "levels",
+            "pixels")
 
 
 @functools.lru_cache(maxsize=256)

@@ -145,6 +145,8 @@ class State(NamedTuple):
     recovered: (C,) bool: track's recovery ran.
     searched: (C,) bool: a swarm ran.
     retries: (C,) int32 align's retries run.
+    spent: (C,) int32 the evaluations of every stage run so far.
+    exhausted: (C,) bool: `Knobs.max_evaluations` ended the stages early.
   """
   stage: jax.Array
   best: problems.Candidate
@@ -152,6 +154,15 @@ class State(NamedTuple):
   recovered: jax.Array
   searched: jax.Array
   retries: jax.Array
+  spent: jax.Array
+  exhausted: jax.Array
+
+
+def _budgeted(state: State, following, found: problems.Candidate, knobs, done: int) -> tuple:
+  """(following stage, spent, exhausted): done where the evaluations spent reach the budget."""
+  spent = state.spent + jnp.where(state.stage < done, found.num_evaluations, 0)
+  over = (following < done) & (spent >= knobs.max_evaluations)
+  return jnp.where(over, done, following), spent, state.exhausted | over
 
 
 def _column(stages, name: str, index):
@@ -255,8 +266,10 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
        jnp.where(accepted, done, search), jnp.where(settled, done, _QUICK_AGAIN),
        jnp.where(settled, done, _SEARCH), jnp.where(settled, done, _RETRY)],
       jnp.where(again, _RETRY, done))
+  following, spent, exhausted = _budgeted(state, following, found, knobs, done)
   return State(following, best, state.anchor, state.recovered,
-               state.searched | (stage >= _QUICK), state.retries + (stage == _RETRY))
+               state.searched | (stage >= _QUICK), state.retries + (stage == _RETRY), spent,
+               exhausted)
 
 
 def _advance_track(state: State, found: problems.Candidate, contexts: problems.Context,
@@ -280,9 +293,10 @@ def _advance_track(state: State, found: problems.Candidate, contexts: problems.C
       [jnp.where(accepted, done, jnp.where(coarse_next, 1, 2)), jnp.where(accepted, done, 2),
        jnp.where(searched.quality >= knobs.lost_quality, done, 3),
        jnp.where(accepted, done, 4)], done)
+  following, spent, exhausted = _budgeted(state, following, found, knobs, done)
   return State(following, best, batching.select(stage == 3, found, state.anchor),
                state.recovered | (stage == 3), state.searched | (stage == 2) | (stage == 4),
-               state.retries)
+               state.retries, spent, exhausted)
 
 
 PIPELINES = {"align": (ALIGN, _advance_align), "track": (TRACK, _advance_track)}
@@ -299,7 +313,8 @@ def _initial(count: int, config) -> State:
                             quality=jnp.full(count, -jnp.inf, jnp.float32),
                             confirmed=jnp.zeros(count, bool), base=zero, num_iterations=zero,
                             num_evaluations=zero)
-  return State(zero, none, none, jnp.zeros(count, bool), jnp.zeros(count, bool), zero)
+  return State(zero, none, none, jnp.zeros(count, bool), jnp.zeros(count, bool), zero, zero,
+               jnp.zeros(count, bool))
 
 
 def _loop(contexts: problems.Context, state: State, knobs: problems.Knobs, pipeline: str,
