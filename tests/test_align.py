@@ -470,3 +470,17 @@ def test_a_budget_does_not_touch_a_call_within_it():
                         config=dataclasses.replace(CONFIG, max_evaluations=int(free.num_evaluations) + 1))
   for field in ("homography", "quality", "status", "num_evaluations"):
     np.testing.assert_array_equal(getattr(capped, field), getattr(free, field), err_msg=field)
+
+
+def test_the_result_is_never_worse_than_the_start_refined_alone():
+  """Under noise the right match's quality stays far under the thresholds and every stage runs:
+  whatever they find, the result scores at least what Gauss–Newton from the start scores."""
+  rng = np.random.default_rng(3)
+  noisy = np.clip(IMAGE + rng.normal(0, 0.08, IMAGE.shape), 0, 1).astype(np.float32)
+  alone = dataclasses.replace(CONFIG, accept_quality=0.0)  # the start's refinement, accepted
+  for seed in range(6):
+    start = _perturbed(seed, 6.0)
+    found = jaxpso.align(noisy, TEMPLATE, start, config=CONFIG, key=seed)
+    refined = jaxpso.align(noisy, TEMPLATE, start, config=alone, key=seed)
+    assert float(found.score) >= float(refined.score), seed
+    assert int(found.num_evaluations) > int(refined.num_evaluations)  # the searches ran

@@ -112,8 +112,8 @@ def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, s
   """`align` of a batch of N: every argument has the leading N axis (knobs excepted).
 
   images: the `atlas.Atlas` of each image's window, whose top-left pixel is
-  at `offsets` (N, 4)[:, :2] in the image of (w, h) `offsets[:, 2:]`; bases (N, 2, 3, 3) the start in window
-  coordinates twice (or (N, 2, 4, 4) identity poses, with `geometry` the
+  at `offsets` (N, 4)[:, :2] in the image of (w, h) `offsets[:, 2:]`; bases
+  (N, 2, 3, 3) the start in window coordinates twice (or (N, 2, 4, 4) identity poses, with `geometry` the
   `motion.Plane`s in window coordinates); seeds (N, 2) uint32.  With
   `single` (N = 1), the result without the N axis; with a `mesh` of several
   devices, each runs its share (`sharding.per_device`).

@@ -335,7 +335,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
     reach = _PART_REACH_PX + 2.0 * recent.speed(r, shape) * (recent.gap[r] + 1)
     if (part is not None and float(part.quality) >= config.lost_threshold
         and (_corner_distance(part.homography, recent.homography[r], shape) <= reach
-             or _corner_distance(part.homography, out["homography"][r], shape) <= _PART_REACH_PX)):
+             or _corner_distance(part.homography, out["homography"][r], shape)
+             <= _PART_REACH_PX)):
       found[r] = part, TrackStatus.TRACKED
       continue
     whole = detection.detect(images[r], templates_[r], config=config, key=index)
@@ -368,7 +369,8 @@ def _keep_lost(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geomet
     carry.reference[r] = np.array(sharding.to_host(before.reference))[r]
     out["status"][r] = TrackStatus.LOST
   h = _coasted(recent, r, shape) if config.coast else recent.homography[r]
-  estimate = _pose(h, geometry, r) if config.coast else np.array(sharding.to_host(before.estimate))[r]
+  estimate = (_pose(h, geometry, r) if config.coast
+              else np.array(sharding.to_host(before.estimate))[r])
   carry.estimate[r], carry.velocity[r] = estimate, np.eye(estimate.shape[-1], dtype=np.float32)
   out["homography"][r], out["estimate"][r] = h, estimate
 
