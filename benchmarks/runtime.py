@@ -25,6 +25,11 @@ range over the rounds.  Every process compiles first and times afterwards.
   `batch_devices` (not in the default `--parts`): the same with the CPU's
   cores as many JAX devices (`jax_num_cpu_devices`), the batch split
   over them.
+* align_batch (not in the default `--parts`): align MI on `--trials` trials
+  of each of `--cases` as one batch (a key per element, so each element is
+  its own call's) against the same calls one by one, best of 3 each; on a
+  CPU a batch runs its elements one after another, so it should cost at
+  most their sum.
 * cases (not in the default `--parts`; e.g. `--parts cases --name
   runtime_cases`): `--trials` per case of `--cases`, where the match is
   imperfect and align runs its retries.  A 100×100 template cut from a CC0
@@ -293,11 +298,40 @@ def _cases_lines(rows: list, rounds: int) -> list:
   return lines
 
 
+def _align_batch_rows(cases: list, count: int):
+  """align MI on `count` trials of each of `cases` as one batch against the same calls one by
+  one: best of 3 each, seconds, and their ratio."""
+  import cv2
+  import jaxpso
+
+  photos = [cv2.imread(os.path.join(IMAGES, name + ".png"), cv2.IMREAD_GRAYSCALE)
+            .astype(np.float32) / 255 for name in PHOTOS]
+  trials = [t[:3] for case in cases for t in case_trials(case, photos, count)]
+  images, templates, starts = (np.stack(a) for a in zip(*trials))
+  config = jaxpso.TrackConfig(similarity="mi")
+  keys = np.arange(len(trials))
+
+  def batched():
+    np.asarray(jaxpso.align(images, templates, starts, config=config, key=keys).homography)
+
+  def alone():
+    for k, trial in enumerate(trials):
+      np.asarray(jaxpso.align(*trial, config=config, key=int(k)).homography)
+
+  batch_s, alone_s = _best_seconds(batched), _best_seconds(alone)
+  label = f"align MI, {len(trials)} of {'/'.join(cases)}"
+  return [{"call": f"{label} as one batch, ms", "value": batch_s * 1e3, "detail": ""},
+          {"call": f"{label} one by one, ms", "value": alone_s * 1e3, "detail": ""},
+          {"call": f"{label}: batch / one by one", "value": batch_s / alone_s, "detail": ""}]
+
+
 PARTS = {"align": lambda options: _align_rows(), "track": lambda options: _track_rows(),
          "batch": lambda options: _batch_rows(),
          "batch_devices": lambda options: _batch_rows(cpu_devices=os.cpu_count()),
          "cases": lambda options: _cases_rows(options.cases.split(","), options.trials,
-                                              _budgets(options.budgets))}
+                                              _budgets(options.budgets)),
+         "align_batch": lambda options: _align_batch_rows(options.cases.split(","),
+                                                          options.trials)}
 
 
 def _budgets(text: str) -> list:
