@@ -79,9 +79,7 @@ import numpy as np
 import common
 import jaxpso
 
-IMAGES = os.environ.get("JAXPSO_IMAGES", os.path.join(
-    os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data", "images"))
-NAMES = ("camera", "brick", "gravel", "grass")
+NAMES = common.PHOTOS
 CATEGORIES = ("scale", "rotation", "perspective", "motion blur", "occlusion", "out of view",
               "unconstrained")
 METHODS = ("jaxpso MI", "jaxpso NCC", "ECC", "SIFT+RANSAC")
@@ -358,13 +356,6 @@ def _visible(quad: np.ndarray, rects) -> float:
   return float(np.clip(mask.sum() / max(area, 1e-9), 0.0, 1.0))
 
 
-def _load(name: str) -> np.ndarray:
-  image = cv2.imread(os.path.join(IMAGES, name + ".png"), cv2.IMREAD_GRAYSCALE)
-  if image is None:
-    raise FileNotFoundError(f"{name}.png not in {IMAGES} (set JAXPSO_IMAGES)")
-  return image.astype(np.float32) / 255.0
-
-
 def render(category: str, frames: int = 150, seed: int = 0, noise: bool = True,
            sharp: bool = False) -> Sequence:
   """Renders one category's sequence (deterministic per (category, seed)); see the module docstring.
@@ -375,9 +366,9 @@ def render(category: str, frames: int = 150, seed: int = 0, noise: bool = True,
   rng = np.random.default_rng([seed, CATEGORIES.index(category)])
   names = {"poster": NAMES[seed % 4], "wall": NAMES[(seed + 1) % 4],
            "occluder": NAMES[(seed + 2) % 4]}
-  poster_tex = _load(names["poster"])
-  wall_tex = cv2.GaussianBlur(_load(names["wall"]), (0, 0), WALL_BLUR)
-  occluder_tex = cv2.copyMakeBorder(_load(names["occluder"]) * 0.9 + 0.05, 0, 512, 0, 512,
+  poster_tex = common.photo(names["poster"])
+  wall_tex = cv2.GaussianBlur(common.photo(names["wall"]), (0, 0), WALL_BLUR)
+  occluder_tex = cv2.copyMakeBorder(common.photo(names["occluder"]) * 0.9 + 0.05, 0, 512, 0, 512,
                                     cv2.BORDER_REFLECT)
   poster_pyr, wall_pyr = _pyramid(poster_tex), _pyramid(wall_tex)
   alpha_pyr = _pyramid(np.ones_like(poster_tex))

@@ -14,6 +14,20 @@ import jax
 import numpy as np
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+IMAGES = os.environ.get("JAXPSO_IMAGES", os.path.join(
+    os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data", "images"))
+"""The CC0 photographs (`../shared/data/images`, or `$JAXPSO_IMAGES`)."""
+PHOTOS = ("camera", "brick", "gravel", "grass")
+
+
+def photo(name: str) -> np.ndarray:
+  """(H, W) float32 grey in [0, 1]: the photograph `name` of `IMAGES`."""
+  import cv2
+
+  image = cv2.imread(os.path.join(IMAGES, name + ".png"), cv2.IMREAD_GRAYSCALE)
+  if image is None:
+    raise FileNotFoundError(f"{name}.png not in {IMAGES} (set JAXPSO_IMAGES)")
+  return image.astype(np.float32) / 255.0
 
 
 def machine() -> dict:

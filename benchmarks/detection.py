@@ -22,7 +22,6 @@ Usage: python benchmarks/detection.py [--trials 100] [--seed 0] [--variants defa
 from __future__ import annotations
 
 import argparse
-import os
 import time
 
 import cv2
@@ -31,9 +30,7 @@ import numpy as np
 import common
 import jaxpso
 
-IMAGES = os.environ.get("JAXPSO_IMAGES", os.path.join(
-    os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data", "images"))
-NAMES = ("camera", "brick", "gravel", "grass")
+NAMES = common.PHOTOS
 FRAME = (480, 640)
 SIDES = (60, 200)
 SCALES = (0.5, 2.0)
@@ -47,13 +44,6 @@ VARIANTS = {
     "swarm 16": dict(config=jaxpso.TrackConfig(swarm_size=16)),
     "swarm 64": dict(config=jaxpso.TrackConfig(swarm_size=64)),
 }
-
-
-def load(name: str) -> np.ndarray:
-  image = cv2.imread(os.path.join(IMAGES, name + ".png"), cv2.IMREAD_GRAYSCALE)
-  if image is None:
-    raise SystemExit(f"cannot read {name}.png under {IMAGES} (set JAXPSO_IMAGES)")
-  return image.astype(np.float32) / 255.0
 
 
 def scene(rng, images: dict):
@@ -139,7 +129,7 @@ def main():
   parser.add_argument("--variants", default="default")
   parser.add_argument("--name", default="detection")
   args = parser.parse_args()
-  images = {name: load(name) for name in NAMES}
+  images = {name: common.photo(name) for name in NAMES}
   rng = np.random.default_rng(args.seed)
   trials = [scene(rng, images) for _ in range(args.trials)]
   rows = [measure(trials, v) for v in args.variants.split(",")]

@@ -67,8 +67,6 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 SIGMAS = (2.0, 8.0)
 TRIALS = 200
-IMAGES = os.environ.get("JAXPSO_IMAGES", os.path.join(HERE, "..", "..", "shared", "data", "images"))
-PHOTOS = ("camera", "brick", "gravel", "grass")
 CASES = ("clean", "gamma", "shading", "noise", "inverted", "real_pairs")
 FOCAL = 500.0
 SQUARE = np.float32([[0, 0], [99, 0], [99, 99], [0, 99]])
@@ -249,11 +247,9 @@ def _corner_rms(h, truth) -> float:
 def _cases_rows(cases: list, count: int, budgets: list):
   """Per case and method a row: the median ms, and each trial's seconds and success; align with
   each of `budgets` (`TrackConfig.max_evaluations`: "default", "none" or an int)."""
-  import cv2
   import jaxpso
 
-  photos = [cv2.imread(os.path.join(IMAGES, name + ".png"), cv2.IMREAD_GRAYSCALE)
-            .astype(np.float32) / 255 for name in PHOTOS]
+  photos = [common.photo(name) for name in common.PHOTOS]
   methods = {"ECC": ecc}
   for similarity, budget in itertools.product(("mi", "ncc"), budgets):
     config = jaxpso.TrackConfig(similarity=similarity)
@@ -301,11 +297,9 @@ def _cases_lines(rows: list, rounds: int) -> list:
 def _align_batch_rows(cases: list, count: int):
   """align MI on `count` trials of each of `cases` as one batch against the same calls one by
   one: best of 3 each, seconds, and their ratio."""
-  import cv2
   import jaxpso
 
-  photos = [cv2.imread(os.path.join(IMAGES, name + ".png"), cv2.IMREAD_GRAYSCALE)
-            .astype(np.float32) / 255 for name in PHOTOS]
+  photos = [common.photo(name) for name in common.PHOTOS]
   trials = [t[:3] for case in cases for t in case_trials(case, photos, count)]
   images, templates, starts = (np.stack(a) for a in zip(*trials))
   config = jaxpso.TrackConfig(similarity="mi")

@@ -320,7 +320,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   either_sign = config.similarity == "mi"
   bounded = detection.bounded(config)
   out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
-  carry = _Carry(*(np.array(leaf) for leaf in sharding.to_host(carry)))
+  carry, before = (_Carry(*(np.array(leaf) for leaf in sharding.to_host(c)))
+                   for c in (carry, before))
   found, shares = {}, {}
   for r in (int(r) for r in check):
     shape = templates_[r].shape
@@ -350,8 +351,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
     carry.estimate[r] = estimate
     velocity = np.eye(estimate.shape[-1], dtype=np.float32)
     if status == TrackStatus.TRACKED and recent.gap[r] == 0:
-      last = np.array(sharding.to_host(before.estimate))[r]
-      velocity = (estimate.astype(np.float64) @ np.linalg.inv(last)).astype(np.float32)
+      velocity = (estimate.astype(np.float64) @ np.linalg.inv(before.estimate[r])).astype(
+          np.float32)
     carry.velocity[r] = velocity
     out["homography"][r], out["estimate"][r] = h, estimate
     out["score"][r], out["quality"][r] = float(f.score), float(f.quality)
@@ -363,14 +364,14 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
 
 def _keep_lost(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geometry,
                config: TrackConfig, r: int, shape) -> None:
-  """Region r LOST in `carry` and `out` (host copies, changed in place): its last estimate, or
-  with `TrackConfig.coast` that estimate moved on (`_coasted`)."""
+  """Region r LOST in `carry` and `out` (host copies of the step's and, `before`, of the carry
+  before it; changed in place): its last estimate, or with `TrackConfig.coast` that estimate
+  moved on (`_coasted`)."""
   if out["status"][r] != TrackStatus.LOST:  # too little of it inside the frame to tell
-    carry.reference[r] = np.array(sharding.to_host(before.reference))[r]
+    carry.reference[r] = before.reference[r]
     out["status"][r] = TrackStatus.LOST
   h = _coasted(recent, r, shape) if config.coast else recent.homography[r]
-  estimate = (_pose(h, geometry, r) if config.coast
-              else np.array(sharding.to_host(before.estimate))[r])
+  estimate = _pose(h, geometry, r) if config.coast else before.estimate[r]
   carry.estimate[r], carry.velocity[r] = estimate, np.eye(estimate.shape[-1], dtype=np.float32)
   out["homography"][r], out["estimate"][r] = h, estimate
 
