@@ -277,7 +277,7 @@ def test_an_align_batch_mixes_image_and_template_sizes_in_one_program():
     mapped = cv2.perspectiveTransform(source[None], np.float64(batch.homography[i]))[0]
     assert np.abs(mapped - truth).max() < 0.5, i
   # Element 0 (the key's own stream) as alone, bit for bit (0.011 px apart
-  # under `vmap`, benchmarks/README.md, session 13).
+  # under `vmap`, benchmarks/results/invariance.md).
   alone = jaxpso.align(images[0], templates[0], starts[0], config=ALIGN, key=2)
   np.testing.assert_array_equal(batch.homography[0], alone.homography)
 

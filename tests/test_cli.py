@@ -15,7 +15,7 @@ from jaxpso import synthetic
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
-# One small tracker config for every tracking test: compiled once per test session.
+# One small tracker config for every tracking test: compiled once per test run.
 _FAST = ["--levels", "1"]
 
 

@@ -139,3 +139,63 @@ def test_import_does_not_pull_in_opencv_or_matplotlib(modules):
   result = subprocess.run([sys.executable, "-c", code], cwd=root, capture_output=True,
                           text=True, timeout=120, check=False)
   assert result.returncode == 0, result.stderr
+
+
+def _import_graph():
+  """{module: modules of jaxpso it imports}, every import statement counted (also those under
+  `if TYPE_CHECKING:` or inside functions)."""
+  package = pathlib.Path(jaxpso.__file__).parent
+  files = {}
+  for path in package.rglob("*.py"):
+    parts = path.relative_to(package.parent).with_suffix("").parts
+    files[".".join(parts[:-1] if parts[-1] == "__init__" else parts)] = path
+  graph = {}
+  for module, path in files.items():
+    here = module if path.name == "__init__.py" else module.rpartition(".")[0]
+    targets = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+      if isinstance(node, ast.Import):
+        targets |= {a.name for a in node.names}
+      elif isinstance(node, ast.ImportFrom):
+        base = node.module or ""
+        if node.level:
+          base = ".".join(here.split(".")[:len(here.split(".")) - node.level + 1] + [base]).strip(".")
+        targets |= {f"{base}.{a.name}" if f"{base}.{a.name}" in files else base for a in node.names}
+    graph[module] = {t for t in targets if t in files and t != module}
+  return graph
+
+
+def _circles(graph):
+  """The strongly connected components of more than one module (Tarjan)."""
+  index, low, stack, found = {}, {}, [], []
+
+  def visit(node):
+    index[node] = low[node] = len(index)
+    stack.append(node)
+    for target in graph[node]:
+      if target not in index:
+        visit(target)
+        low[node] = min(low[node], low[target])
+      elif target in stack:
+        low[node] = min(low[node], index[target])
+    if low[node] == index[node]:
+      component = []
+      while not component or component[-1] != node:
+        component.append(stack.pop())
+      if len(component) > 1:
+        found.append(sorted(component))
+
+  for node in sorted(graph):
+    if node not in index:
+      visit(node)
+  return found
+
+
+def test_import_graph_has_no_circle():
+  graph = _import_graph()
+  assert len(graph) > 30 and "jaxpso._src.atlas" in graph["jaxpso._src.checks"]
+  assert _circles(graph) == []
+
+
+def test_circle_finder_sees_a_circle():
+  assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]

@@ -63,7 +63,7 @@ def _checks():
   # Each device runs the one-device program on its regions (`sharding.per_device`):
   # bit-identical (NCC 4.8e-3 px apart under XLA's SPMD partitioner, 1e-4 to
   # 1.7e-3 px with divisions XLA turned into multiplications in some programs
-  # only; benchmarks/README.md, session 13).
+  # only; benchmarks/results/invariance.md).
   for similarity, predict in (("ncc", False), ("mi", True)):
     config = jaxpso.TrackConfig(similarity=similarity, levels=2, swarm_size=8, max_iterations=5,
                                 search_radius=6.0, predict=predict)
@@ -113,7 +113,7 @@ def _checks():
   np.testing.assert_array_equal(alone.homography, one.homography[1])
   # A gradient baseline's batch is split per device the same way: equal
   # within 1e-3 px, not bit for bit (its solvers round an ulp apart across
-  # devices; benchmarks/README.md, session 13).
+  # devices; benchmarks/results/invariance.md).
   inverse = jaxpso.TrackConfig(method="ic", similarity="ssd", levels=2)
   one, two = (jaxpso.align(np.stack([image] * 3), templates, starts, config=inverse, devices=d)
               for d in (devices[:1], devices[:2]))

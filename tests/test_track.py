@@ -4,7 +4,7 @@ Compilation dominates on a small CPU machine: every distinct `TrackConfig`
 (and frame shape) compiles one per-frame program.  So every test uses frames
 of one shape and one of six configs (three similarities with motion
 "homography", three DOF of motion "plane"), and each (config, sequence) is
-tracked once per session by `_tracked`.
+tracked once per test run by `_tracked`.
 """
 
 import dataclasses

@@ -211,7 +211,7 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
   shapes = [t.shape for t in templates_]
   configs = [config.for_template(shape) for shape in shapes]
   for i, (shape, c) in enumerate(zip(shapes, configs)):
-    checks.check_template_size(shape, c, named("template", i))
+    checks.check_template_size(shape, c.levels, c.resolution, named("template", i))
   starts = [checks.check_start(h, shape, named("init_homography", i))
             for i, (h, shape) in enumerate(zip(starts, shapes))]
   if config.motion != "plane" and (camera is not None or plane_normal is not None):
@@ -220,7 +220,7 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
   windows = [_window(h, shape, im.shape, c) for h, shape, im, c in zip(starts, shapes, images, configs)]
   crops = [im[y:y + hgt, x:x + wid] for im, (x, y, wid, hgt) in zip(images, windows)]
   for i, (crop, c) in enumerate(zip(crops, configs)):
-    checks.check_image_size(crop.shape, c, named("image", i))
+    checks.check_image_size(crop.shape, c.levels, named("image", i))
   size = max(atlas.capacity(sum(h * w for h, w in atlas.level_shapes(crop.shape, c.levels)))
              for crop, c in zip(crops, configs))
   pyramids = [atlas.build(crop, c.levels, size) for crop, c in zip(crops, configs)]

@@ -130,7 +130,7 @@ def each(fn: Callable, *args):
   batch it is in (`vmap` vectorises by the batch's width, and XLA then
   rounds sums and fused multiply-adds otherwise: a registration that stops
   where its steps fall under a tolerance ended up to 9e-3 px elsewhere,
-  benchmarks/README.md, session 13); its loops stop where the element's
+  benchmarks/results/invariance.md); its loops stop where the element's
   own do, where under `vmap` every `while_loop` runs to the batch's slowest
   element as selects over the whole carry.  Accelerators, whose lanes run
   in parallel, `vmap`.

@@ -15,16 +15,13 @@ from __future__ import annotations
 
 import numbers
 from collections.abc import Sequence
-from typing import TYPE_CHECKING, Callable
+from typing import Callable
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
 from jaxpso._src import atlas
-
-if TYPE_CHECKING:
-  from jaxpso._src.config import TrackConfig
 
 
 def as_float_array(value, name: str) -> jax.Array:
@@ -155,27 +152,27 @@ def check_texture(spreads, describe: Callable[[int], str]) -> None:
 TEMPLATE_SIDES = (8, 4096)
 
 
-def check_template_size(shape, config: TrackConfig, name: str) -> None:
-  """ValueError naming `name` when a side is outside `TEMPLATE_SIDES`, the coarsest level is
-  under 4 px or `TrackConfig.resolution` exceeds its pixels."""
+def check_template_size(shape, levels: int, resolution: int | None, name: str) -> None:
+  """ValueError naming `name` when a side is outside `TEMPLATE_SIDES`, the coarsest of
+  `levels` is under 4 px or `resolution` (`TrackConfig`'s) exceeds its pixels."""
   low, high = TEMPLATE_SIDES
   if not low <= min(shape) or not max(shape) <= high:
     raise ValueError(f"{name} of shape {tuple(shape)} is outside the supported sizes: every side"
                      f" must be {low} to {high} pixels")
-  if config.resolution is not None and config.resolution > shape[0] * shape[1]:
-    raise ValueError(f"TrackConfig.resolution={config.resolution} is larger than {name} of shape"
+  if resolution is not None and resolution > shape[0] * shape[1]:
+    raise ValueError(f"TrackConfig.resolution={resolution} is larger than {name} of shape"
                      f" {tuple(shape)} ({shape[0] * shape[1]} pixels)")
-  if min(shape) / 2 ** (config.levels - 1) < 4:
+  if min(shape) / 2 ** (levels - 1) < 4:
     raise ValueError(
-        f"{name} of shape {tuple(shape)} is too small for levels={config.levels}:"
+        f"{name} of shape {tuple(shape)} is too small for levels={levels}:"
         " the coarsest level would be under 4 px")
 
 
-def check_image_size(shape, config: TrackConfig, name: str) -> None:
-  """ValueError naming `name` when the image's coarsest level would be under 2×2 pixels."""
-  coarsest = atlas.level_shapes(shape, config.levels)[-1]
+def check_image_size(shape, levels: int, name: str) -> None:
+  """ValueError naming `name` when the image's coarsest of `levels` would be under 2×2 pixels."""
+  coarsest = atlas.level_shapes(shape, levels)[-1]
   if min(coarsest) < 2:
-    raise ValueError(f"levels={config.levels} is too many for {name} of shape {tuple(shape)}:"
+    raise ValueError(f"levels={levels} is too many for {name} of shape {tuple(shape)}:"
                      " its coarsest level would be smaller than 2×2")
 
 

@@ -48,6 +48,9 @@ k-th power of the last inter-frame motion (in all about 5 frames' worth)."""
 class TrackConfig:
   """Settings of `align` and `track`.
 
+  The measurements behind the defaults: benchmarks/README.md, "Measured
+  reasons behind defaults".
+
   Only method, similarity, motion, dof, bins, swarm_size, variant,
   topology and resolution shape the compiled programs (`statics`); every other setting
   reaches them as data (`knobs`), so changing it never recompiles.
@@ -61,9 +64,7 @@ class TrackConfig:
     similarity (str): "mi" (default), "ncc" or "ssd".
     motion (str): "homography" (8 corner offsets) or "plane" (plane-induced, `dof`).
     dof (int): pose parameters of motion "plane": 2 (tx, ty), 4 (+ tz, wz) or 6.
-    bins (int): histogram bins of MI, at least 4.  16, not 8: with 8, small
-      motions converged less often (benchmarks/README.md, TrackConfig's
-      defaults).
+    bins (int): histogram bins of MI, at least 4.
     swarm_size (int): particles of the swarm.
     max_iterations (int): PSO iterations at most (a baseline's per level).
     quick_iterations (int): `align`'s search first runs one swarm of this
@@ -71,11 +72,7 @@ class TrackConfig:
       seeds; a quick search's refined best is the result where it reaches
       `retry_quality` or agrees within 1 px with the best so far on a
       quality of at least 0.8, and only otherwise the search of
-      `max_iterations` runs.  At σ = 8 px a swarm of 5 iterations found the
-      right basin as often as one of 40 (11 and 10 of the 21 trials of 200
-      that searched); two quick searches that agree confirm a noisy match
-      (quality under 0.95) at 662 evaluations where the full search took
-      1 328–1 678 (benchmarks/README.md, session 14).  0 skips them.
+      `max_iterations` runs.  0 skips them.
     patience (int | None): PSO stagnation stop (None disables).
     variant (str): PSO variant (`jaxpso.pso.VARIANTS`).
     topology (str): PSO topology (`jaxpso.pso.TOPOLOGIES`).
@@ -85,65 +82,50 @@ class TrackConfig:
       searches the coarsest.  None (the default): as many as keep the
       template's shorter side at least `COARSEST_PX` pixels on the coarsest
       level, at most `AUTO_LEVELS` (`for_template`): 4 for a 100×100
-      template, 3 for 48×48.  Small templates get fewer levels: on 4, a
-      48×48 template came out far off on a translating clip
-      (benchmarks/README.md, TrackConfig's defaults).
+      template, 3 for 48×48.
     refine_steps (int): Gauss–Newton (Levenberg–Marquardt) steps per pyramid
       level after the swarm (0 disables the refinement).
     pixels (float): fraction in (0, 1] of the full-resolution template's
       pixels the refinement uses there, those with the largest gradient
       magnitude (at least 256 or all of them, at most `resolution`); 1 uses
-      every pixel.  The coarser levels and the swarm always use every pixel:
-      selecting there too made the refinement from the start converge less
-      often (benchmarks/README.md, TrackConfig's defaults).
+      every pixel.  The coarser levels and the swarm always use every pixel.
     accept_quality (float | None): the start refined by Gauss–Newton alone
       is the result, and the swarm is skipped, when its `quality` reaches
       this; None always runs the swarm.  `track` also accepts a start within
       0.02 of the quality of the region's last searched match (if that was
       ≥ 0.8): noise and blur lower the right alignment's quality too, and the
-      swarm should not run on every frame for it (benchmarks/video.py).
-      `align` refines a start that falls short once more from the coarsest
-      level before it runs the swarm, which then runs in far fewer trials
-      (benchmarks/README.md, TrackConfig's defaults), and accepts it where
-      both refinements agree within 1 px on a quality of at least 0.8
-      (under image noise the right alignment's quality stays under 0.95).
+      swarm should not run on every frame for it.  `align` refines a start
+      that falls short once more from the coarsest level before it runs the
+      swarm, and accepts it where both refinements agree within 1 px on a
+      quality of at least 0.8 (under image noise the right alignment's
+      quality stays under 0.95).
     resolution (int | None): points each of the template's sets holds at
       most (a pixel budget; static).  A template level with more keeps those
       of largest gradient, and the full-resolution loss and `quality` a
       regular subsample (every s-th row and column), so a region of any size
       costs at most this many points per set.  None (the default):
-      `template.RESOLUTION` (1 280, about 36×36; the trade-off is measured
-      in benchmarks/README.md, resolution).  At least 64 (8×8) and at most
-      the template's pixels.
+      `template.RESOLUTION` (1 280, about 36×36).  At least 64 (8×8) and at
+      most the template's pixels.
     min_valid (float): fraction of template pixels that must land in the image.
     predict (bool): `track` starts each frame from a prediction carrying half
       the last inter-frame motion (or from the previous estimate, whichever
       scores better).  Half, not all: with all of it a plane pose's weakly
-      constrained rotation/translation error grows by itself
-      (benchmarks/README.md, tracking).  Off by default: it changes nothing
-      on the synthetic sequences.
+      constrained rotation/translation error grows by itself.
     lost_quality (float | None): `track` declares a frame lost when its
       `quality` stays below this after the recovery search
       (`lost_threshold`).  None (the default): `LOST_QUALITY` of the
-      similarity, above the wrong matches measured and below every correct
-      frame (benchmarks/README.md, TrackConfig's defaults).
+      similarity, between the scores of wrong and of correct matches.
     retry_quality (float): `align` runs a second search (`recovery_scale`
       swarms of other seeds, each `recovery_scale` × the iterations, same
       box, one pyramid level finer) when the quality of its first result is
       below this and the swarm's result and the start's refinement disagree,
-      and keeps the better result.  One level finer converged more often at
-      large motions, and the agreement test spares correct alignments of a
-      noisy image the retry's time (benchmarks/README.md, TrackConfig's
-      defaults).
+      and keeps the better result.
     retries (int): `align` runs the retry again with other seeds, up to this
       many more times, while its result stays below `retry_quality` and
       disagrees (a corner over 1 px apart) with the best so far, and keeps
       the lowest loss.  Two independent searches that agree confirm a
       result whatever the image noise; where they disagree at least one is
-      wrong.  4 raised Baker–Matthews success at σ 8–16 from 94.0 to 97.1 %
-      (12 cells of 100 new trials), 2 to 96.3 %; the 90th percentile of the
-      time at σ 12 went from 157 to 326 ms (285 ms with 2).  0 is the single
-      retry (benchmarks/README.md, issue 18).
+      wrong.  0 is the single retry.
     redetect (bool): `track` runs `jaxpso.detect` (the template searched in
       the whole frame at any rotation and a scale of 0.5–2×) on every frame
       it would report LOST, and takes the detection as RECOVERED where its
@@ -156,10 +138,8 @@ class TrackConfig:
       stages stop once they have spent it and the best so far is the result,
       `AlignStatus.BUDGET` where the search had not settled.  Checked
       between stages, so a call overshoots by at most its last stage.  None:
-      no cap.  20 000 lets `align` run its searches and one or two
-      retries: it keeps every cell of benchmarks/results/convergence.md
-      (8 000, one retry, lost one shading trial at σ 12) and cuts the
-      slowest calls of benchmarks/results/runtime_cases.md by 1.3–2×.
+      no cap.  The default lets `align` run its searches and one or two
+      retries.
     coast (bool): on a frame `track` reports LOST, the region's estimate
       moves on with its last inter-frame motion, damped by `COAST_DECAY`
       per lost frame (a target hidden while it moves is looked for, and
@@ -167,9 +147,7 @@ class TrackConfig:
     recovery_scale (int): `track`'s recovery search has this many times the
       radius and iterations of the normal search, and as many swarms; its
       swarm searches the template's 2-D translation only, and Gauss–Newton
-      the full motion from its best: over every motion parameter in the wide
-      box the swarm seldom found a region that had moved while hidden
-      (benchmarks/README.md, TrackConfig's defaults).
+      the full motion from its best.
   """
   method: str = "pso"
   similarity: str = "mi"

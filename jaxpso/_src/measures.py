@@ -100,11 +100,9 @@ def add_with_own(stats, own, a_bins, b, mask, measure: Measure, image_range):
   a_bins (c, bins): the template values' `bin_weights`, bins last; b (c,)
   the patch, binned over image_range (2,); mask (c,).  Returns `stats` and
   `own` plus the chunk's Σm β(a) β(b)ᵀ and Σm β(b) β(b)ᵀ: one (bins, c) by
-  (c, 2·bins) product took half the time of the two (benchmarks/README.md,
-  runtime before and after issue 17).
+  (c, 2·bins) product took half the time of the two.
   """
-  # b is binned in both layouts: taking wb.T instead was slower (a layout
-  # copy; benchmarks/README.md, runtime before and after issue 17).
+  # b is binned in both layouts: taking wb.T instead was slower (a layout copy).
   wb = bin_weights(b, measure.bins, image_range)
   right = jnp.concatenate([a_bins, bin_weights(b, measure.bins, image_range, True)], axis=-1)
   left, right = jax.lax.optimization_barrier((wb * mask.astype(b.dtype)[None], right))

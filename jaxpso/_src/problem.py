@@ -255,8 +255,7 @@ class Problem:
       # CPU's products of (k, c) by (c, k') are several times faster than by
       # (k', c) transposed, most of all batched (benchmarks/README.md, batch).
       # Its terms (gx, gy, across) ⊗ (px, py, 1) as one outer product: one
-      # kernel each side, where the 8 products stacked were 8 (a 64-region
-      # track 8 % faster, session 13).
+      # kernel each side, where the 8 products stacked were 8.
       m = valid.astype(value.dtype)
       slopes = jnp.stack([gx, gy, across])
       coords = jnp.stack([px, py, jnp.ones_like(px)])

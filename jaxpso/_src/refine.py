@@ -19,7 +19,7 @@ maximised, so the refinement keeps its invariances:
   intensity change (gamma 0.5: median 0.05–0.08 px, the Baker–Matthews
   trials of convergence.py).  Per-bin mean intensities, the
   earliest fit, are biased wherever the template's histogram is uneven
-  (benchmarks/README.md, issue 18: status precision);
+  (benchmarks/convergence.py's gamma trials);
 * "ncc": T̃ = a·T + b, the least-squares gain and bias;
 * "ssd": T̃ = T.
 
@@ -135,11 +135,9 @@ def levenberg_marquardt(u0, linearise: Callable, loss_at: Callable, steps, toler
       parameters stays within `_NOISE` × tolerance, return its end instead
       (up to twice that, part of the way there).
       Only where the step's fixed point is the loss's optimum ("ssd",
-      "ncc"): MI's remap is ridged, and its fixed point lies off (with the
-      ridge at 1 the Baker–Matthews median error went from 0.0013 to 0.0086
-      px, session 11; at `template.REMAP_RIDGE` the errors held but
-      invariance.py's batch and device differences grew to 5.5e-2 px,
-      session 12; benchmarks/README.md).
+      "ncc"): MI's remap is ridged, and its fixed point lies off the
+      optimum; polishing there moved the Baker–Matthews errors and
+      invariance.py's batch and device differences.
 
   Returns:
     ((D,) the lowest-loss parameters visited (or polished), () int32 loss

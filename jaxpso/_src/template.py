@@ -56,8 +56,8 @@ REMAP_RIDGE = 0.01
 At 1 (a pixel's worth per bin) the remap's fixed point sat off the
 alignment: Baker–Matthews median errors 0.0019–0.0032 px on unchanged
 images and 0.032–0.043 px under gamma 0.5; at 0.01, 0.0010–0.0017 and
-0.0022–0.0043 px, success equal in all 36 cells (benchmarks/README.md,
-session 12).  Only 0.01 was tried.
+0.0022–0.0043 px, success equal in all 36 cells (benchmarks/convergence.py,
+commit c5000b9).  Only 0.01 was tried.
 """
 
 

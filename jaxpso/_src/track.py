@@ -489,10 +489,9 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
                      f" {sorted(set(shapes))}")
   configs = [config.for_template(shape) for shape in shapes]
   for r, (shape, c) in enumerate(zip(shapes, configs)):
-    checks.check_template_size(shape, c, name(r))
+    checks.check_template_size(shape, c.levels, c.resolution, name(r))
   levels = max(c.levels for c in configs)
-  checks.check_image_size(frame_shape, configs[int(np.argmax([c.levels for c in configs]))],
-                          "frames[0]")
+  checks.check_image_size(frame_shape, levels, "frames[0]")
   pixels = [frame0[r if sequences else 0] for r in range(count)]
   templates_ = [track_inputs.template(f, corners, shape)
                 for f, (corners, shape) in zip(pixels, regions)]
