@@ -2,6 +2,7 @@
 
   jaxpso demo [--out DIR] [--frames N] [--seed S] [tracker options]
   jaxpso track VIDEO_OR_FOLDER --roi x,y,w,h --out DIR [--max-frames N] [tracker options]
+  jaxpso evaluate DATASET --format pot|planartrack|ucsb|tmt|plain --methods M,M,... --out DIR
 
 demo renders a synthetic sequence of the embedded image on a plane seen by a
 moving camera (two sudden jumps, gain drift 0.1, noise 0.01), tracks its
@@ -16,6 +17,10 @@ or a folder of images.  Both write to DIR:
   results.csv  one row per frame: status, score, quality, corners, error,
                iterations, evaluations
   results.json the same, with a summary
+evaluate runs methods (pso, pso:ncc, ic, ecc, sift, ...: `jaxpso.datasets.method`) over a
+dataset in a published layout and writes the benchmark toolkit's result files, per-frame
+errors, summary.md / summary.csv and precision.png / success.png to DIR; run again, it
+resumes where it stopped (`jaxpso.evaluate`).
 Tracker options: --similarity, --motion, --dof, --swarm-size, --max-iterations,
 --search-radius, --levels, --resolution, --refine-steps (defaults: `jaxpso.TrackConfig`).
 """
@@ -30,6 +35,7 @@ import sys
 import time
 
 import jaxpso
+from jaxpso import datasets
 from jaxpso import io
 from jaxpso import synthetic
 from jaxpso._src import config as configs
@@ -229,6 +235,16 @@ def _track(args) -> int:
   return 0
 
 
+def _evaluate(args) -> int:
+  report = jaxpso.evaluate(args.dataset, args.format, args.methods, args.out,
+                           sequences=args.sequences.split(",") if args.sequences else None)
+  print(f"{report.ran} runs done, {report.resumed} read back from {args.out};"
+        f" {report.seconds:.1f} s, {report.tracker_seconds:.1f} s of it in the trackers")
+  with open(os.path.join(args.out, "summary.md")) as handle:
+    print(handle.read().rstrip())
+  return 0
+
+
 def _parser() -> argparse.ArgumentParser:
   parser = _Parser(prog="jaxpso", description=__doc__,
                    formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -249,6 +265,15 @@ def _parser() -> argparse.ArgumentParser:
                      help="track at most this many frames")
   _add_tracker_options(track)
   track.set_defaults(run=_track)
+  evaluate = commands.add_parser("evaluate", help="score methods on a benchmark dataset")
+  evaluate.add_argument("dataset", metavar="DATASET", help="the dataset's folder")
+  evaluate.add_argument("--format", required=True, choices=datasets.LAYOUTS,
+                        help="the dataset's layout")
+  evaluate.add_argument("--methods", default="pso,ecc,sift",
+                        help="comma-separated NAME or NAME:SIMILARITY (default pso,ecc,sift)")
+  evaluate.add_argument("--out", required=True, help="output folder (resumed if it exists)")
+  evaluate.add_argument("--sequences", help="comma-separated sequence names (default all)")
+  evaluate.set_defaults(run=_evaluate)
   return parser
 
 
