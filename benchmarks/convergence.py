@@ -108,7 +108,7 @@ ECC_ITERATIONS = 100
 # findTransformECCMultiScale's levels: of 1-4, 2 converged most often on 50 trials of the
 # unchanged image at σ 2, 8, 16 (88 / 56 / 20 %; OpenCV's default 4: 44 / 40 / 12 %).
 ECC_LEVELS = 2
-# Issue 4's targets for pso (MI): (condition, σ, least success).
+# Targets for pso (MI): (condition, σ, least success).
 TARGETS = (("none", 16, 0.97), ("none", 20, 0.90), ("gamma", 8, 0.90), ("inverted", 8, 0.90))
 TIME_RATIO = 3.0  # pso (MI)'s median time at most this × OpenCV ECC's
 
@@ -393,7 +393,7 @@ def main():
       "",
   ]
   if "pso-mi" in names and "opencv-ecc" in names:
-    lines += ["## Issue-4 targets, pso (MI)", "",
+    lines += ["## Targets, pso (MI)", "",
               "| target | measured | met |", "|---|---:|---|"]
     for condition, sigma, least in TARGETS:
       row = find(rows, condition, sigma, "pso-mi")

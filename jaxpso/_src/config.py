@@ -7,7 +7,7 @@ line all read one `TrackConfig`, and `track` should not reach it through
 settings in two: the few `statics` that shape a compiled program (and key
 it, `jaxpso._src.programs`) and the runtime `knobs` that reach the program
 as data, so that changing them never recompiles.  The measured reasons for
-its defaults are in benchmarks/README.md (TrackConfig's defaults).
+its defaults are in benchmarks/README.md (Measured reasons behind defaults).
 """
 
 from __future__ import annotations

@@ -173,7 +173,7 @@ def _from_corners(corners: np.ndarray) -> np.ndarray:
 def _count_frames(source: str) -> int | None:
   """Frames of a folder (its images), or of a video as its container states (None if not)."""
   if os.path.isdir(source):
-    return len(video._image_files(source))
+    return len(video.image_files(source))
   import cv2  # lazily, as in video.py
 
   capture = cv2.VideoCapture(source)
@@ -202,7 +202,8 @@ def _index(root: str) -> dict[str, str]:
   return found
 
 
-def _check(name, source, annotation, corners) -> None:
+def _check(source: str, annotation: str, corners: np.ndarray) -> None:
+  """ValueError naming the annotation file where its lines are not the source's frames."""
   count = _count_frames(source)
   if count is not None and count != len(corners):
     raise ValueError(f"{annotation}: {len(corners)} lines, but {source} has {count} frames")
@@ -255,7 +256,7 @@ def _toolkit(root: str, layout: str) -> list[Sequence]:
       if os.path.exists(factors):
         flags_ = _numbers(factors, len(PLANARTRACK_ATTRIBUTES))[0]
         attributes = tuple(a for a, f in zip(PLANARTRACK_ATTRIBUTES, flags_) if f)
-    _check(name, sources[name], points, corners)
+    _check(sources[name], points, corners)
     sequences.append(Sequence(name, sources[name], corners, homographies, excluded, attributes,
                               points))
   return sequences
@@ -279,7 +280,7 @@ def _mtf(root: str, layout: str) -> list[Sequence]:
     if layout == "ucsb" and "_" in name:
       attributes = (re.sub(r"\d+$", "", name.split("_", 1)[1]),)
     source = os.path.join(root, name)
-    _check(name, source, path, corners)
+    _check(source, path, corners)
     sequences.append(Sequence(name, source, corners, _from_corners(corners),
                               np.zeros(len(corners), bool), attributes, path))
   return sequences
@@ -298,7 +299,7 @@ def _plain_one(folder: str) -> Sequence:
     source = frames
   else:
     videos = sorted(f for f in os.listdir(folder) if f.lower().endswith(VIDEO_EXTENSIONS))
-    images = video._image_files(folder)
+    images = video.image_files(folder)
     if len(videos) > 1:
       raise ValueError(f"{folder}: several videos ({', '.join(videos)}); keep one")
     if not videos and not images:
@@ -309,7 +310,7 @@ def _plain_one(folder: str) -> Sequence:
   if os.path.exists(listed):
     with open(listed, encoding="utf-8") as handle:
       attributes = tuple(line.strip() for line in handle if line.strip())
-  _check(os.path.basename(folder), source, path, corners)
+  _check(source, path, corners)
   return Sequence(os.path.basename(os.path.abspath(folder)), source, corners,
                   _from_corners(corners), np.isnan(corners[:, 0, 0]), attributes, path)
 

@@ -228,7 +228,9 @@ class Report(NamedTuple):
       ms_per_frame.
     curves: {(method, attribute): (precision (21,), success (21,))}.
     ran: (sequence, method) runs done by this call; resumed: those read back from disk.
-    seconds: this call's time; tracker_seconds: the part spent inside the trackers' runs.
+    seconds: this call's time; tracker_seconds: the part spent inside the trackers' runs
+      (decoding the frames included: they stream from disk); report_seconds: the part spent
+      writing the table and the curves at the end.
   """
   rows: list
   curves: dict
@@ -236,6 +238,7 @@ class Report(NamedTuple):
   resumed: int
   seconds: float
   tracker_seconds: float
+  report_seconds: float
 
 
 def _summarise(records: dict, methods: list, sequences: list) -> tuple[list, dict]:
@@ -406,8 +409,10 @@ def evaluate(dataset, layout: str, methods, out, *, sequences=None,
       _progress(done + resumed, len(todo) + resumed, tracker_seconds, frames_done, frames_left,
                 f"{sequence.name} {entry.name}: {record['ms_per_frame']:.1f} ms/frame,"
                 f" precision {precision:.3f}")
+  reporting = time.perf_counter()
   rows, curves = _summarise(records, entries, found)
   _write_tables(out, rows, dataset, layout)
   _plot(out, curves, entries)
-  return Report(rows, curves, len(todo), resumed, time.perf_counter() - started,
-                tracker_seconds)
+  end = time.perf_counter()
+  return Report(rows, curves, len(todo), resumed, end - started, tracker_seconds,
+                end - reporting)

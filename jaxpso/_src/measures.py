@@ -161,7 +161,7 @@ def over_chunks(count, chunk: int, body: Callable, state, capacity: int | None =
 # (and, for the image, the union of that and the same range of the image where
 # the start puts the template), widened by _RANGE_MARGIN of its span each way
 # and at least _MIN_SPAN wide, so that a low-contrast template fills the bins
-# instead of two or three of them (benchmarks/README.md, convergence).  The
+# instead of two or three of them.  The
 # quantiles are read off a histogram of _RANGE_HISTOGRAM bins between the
 # extremes (to 1/1000 of the span): XLA's CPU sort, which jnp.quantile uses,
 # cost a third of a whole accepted alignment.

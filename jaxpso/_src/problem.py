@@ -43,7 +43,7 @@ _TOLERANCE, _COARSE_TOLERANCE = 0.01, 0.25
 # check scores its set, at most `TrackConfig.resolution` points, in one).
 # A set costs whole chunks (under vmap, the largest element's), so the
 # chunks are sized to the sets: a coarse level has 144–576 points, a 48×48
-# template's level 1 has 576 (benchmarks/README.md, batch).
+# template's level 1 has 576 (benchmarks/README.md, implementation choices).
 _GN_CHUNK, _SWARM_CHUNK = 640, 160
 
 
@@ -253,7 +253,8 @@ class Problem:
       across = -(gx * x + gy * y)
       # B as rows (8, c) on the left and as columns (c, 8) on the right: the
       # CPU's products of (k, c) by (c, k') are several times faster than by
-      # (k', c) transposed, most of all batched (benchmarks/README.md, batch).
+      # (k', c) transposed, most of all batched (benchmarks/README.md,
+      # implementation choices).
       # Its terms (gx, gy, across) ⊗ (px, py, 1) as one outer product: one
       # kernel each side, where the 8 products stacked were 8.
       m = valid.astype(value.dtype)

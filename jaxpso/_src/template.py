@@ -151,9 +151,9 @@ def _subsample(shape, resolution: int) -> np.ndarray:
 
 # MI bins intensities over the range between these quantiles, widened by
 # _RANGE_MARGIN of its span each way and at least _MIN_SPAN wide, so that a
-# low-contrast template fills the bins instead of two or three of them
-# (benchmarks/README.md, convergence).  The quantiles are read off a
-# histogram of _RANGE_HISTOGRAM bins between the extremes.
+# low-contrast template fills the bins instead of two or three of them.  The
+# quantiles are read off a histogram of _RANGE_HISTOGRAM bins between the
+# extremes.
 _RANGE_QUANTILES, _RANGE_MARGIN, _MIN_SPAN = (0.01, 0.99), 0.1, 0.05
 _RANGE_HISTOGRAM = 1024
 

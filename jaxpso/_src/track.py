@@ -106,7 +106,7 @@ class _Constants(NamedTuple):
 # all of it, an error the image barely constrains (a plane pose's rotation
 # against its translation) grows by itself, e_{t+1} = 2 e_t − e_{t−1}: with a
 # fraction α it follows the roots 1 and α of z² − (1 + α) z + α, so it stays
-# bounded (benchmarks/README.md, tracking: plane + prediction).
+# bounded.
 _PREDICTED_FRACTION = 0.5
 
 

@@ -52,7 +52,8 @@ def _convert(image: np.ndarray, gray: bool) -> np.ndarray:
   return cv2.cvtColor(image, code)
 
 
-def _image_files(folder: str) -> list[str]:
+def image_files(folder: str) -> list[str]:
+  """The paths of the images (`IMAGE_EXTENSIONS`) in folder, in natural name order."""
   names = [name for name in os.listdir(folder)
            if name.lower().endswith(IMAGE_EXTENSIONS)
            and os.path.isfile(os.path.join(folder, name))]
@@ -121,7 +122,7 @@ def read_frames(source, *, gray: bool = False) -> Iterator[np.ndarray]:
   if not os.path.exists(path):
     raise FileNotFoundError(f"no such video file or image folder: {path!r}")
   if os.path.isdir(path):
-    paths = _image_files(path)
+    paths = image_files(path)
     if not paths:
       raise ValueError(f"folder {path!r} holds no images"
                        f" (looked for {', '.join(IMAGE_EXTENSIONS)})")
