@@ -19,7 +19,7 @@ from jaxpso import similarity
 from jaxpso import synthetic
 from jaxpso import warp
 
-_MODULES = (warp, similarity, pso, synthetic, data, jaxpso.io, jaxpso.baselines)
+_MODULES = (warp, similarity, pso, synthetic, data, jaxpso.io, jaxpso.baselines, jaxpso.datasets)
 _SRC = pathlib.Path(jaxpso.__file__).parent / "_src"
 
 
@@ -42,7 +42,8 @@ def test_package_surface():
   assert jaxpso.__doc__
   assert set(jaxpso.__all__) == {"METHODS", "AlignResult", "AlignStatus", "TrackConfig",
                                  "TrackResult", "TrackStatus", "align", "baselines", "cache_dir",
-                                 "data", "detect", "io", "pso", "set_cache_dir", "similarity",
+                                 "data", "datasets", "detect", "evaluate", "io", "pso",
+                                 "set_cache_dir", "similarity",
                                  "synthetic", "track", "warp", "__version__"}
   for name in ("AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus",
                "align", "cache_dir", "detect", "set_cache_dir", "track"):

@@ -37,9 +37,11 @@ from jaxpso._src.config import TrackConfig
 PRECISION_PX = tuple(range(21))
 """Alignment-error thresholds (px) of the precision curve."""
 PRECISION_RANK_PX = 5
+"""The threshold the toolkits rank precision at."""
 SUCCESS_THRESHOLDS = tuple(range(0, 201, 10))
 """Homography-discrepancy thresholds of the success curve."""
 SUCCESS_RANK = 30
+"""The threshold the PlanarTrack toolkit ranks success at (its 4th)."""
 
 FEATURE_PEER = "sift"
 """The method name of `track_features` (SIFT + RANSAC against frame 0's region)."""
