@@ -41,6 +41,10 @@ _SAME_PLACE = 0.5
 # Each candidate is refined on this many finer levels, within this many
 # pixels of each level around its place.
 _REFINE_LEVELS, _REFINE_PX = 2, 3
+# This many times the candidates asked for are refined, and ranked by their
+# finest correlation: a coarse peak of the background can outscore the
+# target's, whose larger patch on the finer levels tells them apart.
+_RERANK = 4
 # With mutual information the image may be inverted (MI matches it):
 # peaks of negative correlation count too.  NCC and SSD cannot match it.
 _EITHER_SIGN = {"mi": True, "ncc": False, "ssd": False}
@@ -83,7 +87,7 @@ def _similarity(centre, scale: float, angle_deg: float, template_shape) -> np.nd
 
 def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: int,
                either_sign: bool):
-  """Yields up to `count` (3, 3) float64 starts, best first, from the coarse correlation stage.
+  """Up to `count` (3, 3) float64 starts, best first, from the coarse correlation stage.
 
   image (H, W), template (h, w): float32 grey.  `scales`, `angles` (low,
   high): the ranges searched (angles in degrees); `either_sign`: anticorrelation
@@ -155,10 +159,11 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
     if all(np.linalg.norm(peak[1] - other[1]) > _SAME_PLACE * disc * min(peak[2], other[2])
            for other in chosen):
       chosen.append(peak)
-    if len(chosen) == count:
+    if len(chosen) == _RERANK * count:
       break
   # Each candidate refined on the finer levels, half the grid's steps each
-  # level, when it is asked for (`detect` stops at the first good one).
+  # level; the best `count` by their last score.
+  refined = []
   for score, place, scale, angle, level in chosen:
     step_angle, step_scale = _ANGLE_STEP / 2, _SCALE_RATIO ** 0.5
     for finer in range(level - 1, max(level - 1 - _REFINE_LEVELS, -1), -1):
@@ -170,7 +175,9 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
         break
       (score, place), scale, angle = max(results, key=lambda r: r[0][0])
       step_angle, step_scale = step_angle / 2, step_scale ** 0.5
-    yield _similarity(place, scale, angle, template.shape)
+    refined.append((score, _similarity(place, scale, angle, template.shape)))
+  refined.sort(key=lambda r: -r[0])
+  return [start for _, start in refined[:count]]
 
 
 def bounded(config: TrackConfig) -> TrackConfig:
