@@ -184,6 +184,8 @@ def test_bad_datasets_and_methods_are_named(tmp_path, capsys):
   _dataset(data, "plain", count=1)
   out = str(tmp_path / "out")
   assert "is not in the pot layout" in _error(capsys, str(data), "--format", "pot", "--out", out)
+  assert "sequences is empty" in str(pytest.raises(ValueError, jaxpso.evaluate, data, "plain",
+                                                  "sift", out, sequences=[]).value)
   assert "unknown method 'nope'" in _error(capsys, str(data), "--format", "plain", "--out", out,
                                            "--methods", "sift,nope")
   assert not os.path.exists(out)

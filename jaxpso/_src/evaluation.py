@@ -375,6 +375,8 @@ def evaluate(dataset, layout: str, methods, out, *, sequences=None,
     if unknown:
       raise ValueError(f"no sequence {unknown} in {dataset}")
     found = [s for s in found if s.name in set(sequences)]
+    if not found:
+      raise ValueError("sequences is empty")
   out = os.fspath(out)
   _claim(out, dataset, layout)
   records, todo = {}, []
