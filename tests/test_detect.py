@@ -192,3 +192,18 @@ def test_a_region_leaving_the_frame_is_never_tracked_off_target(scene, similarit
                              inside[tracked & (inside > 0.75)], atol=1 / 16)  # 16 columns
   assert np.all(result.visible[tracked & (inside < 0.75)] < 0.75)
   assert np.all(np.isfinite(result.homographies)) and np.all(np.isfinite(result.visible))
+
+
+def test_detect_ranks_its_candidates_on_a_finer_level():
+  """A small template (49 px at 0.66×) over a textured background: four background places
+  outscore it on the coarse level, and only ranking the coarse peaks again on the next finer
+  level (`detect._RERANK`) keeps it among the candidates tried."""
+  camera = jaxpso.data.load_image("camera")
+  brick = jaxpso.data.load_image("brick")
+  background = cv2.GaussianBlur(cv2.resize(brick, None, fx=0.73, fy=0.73), (0, 0), 1.0)
+  background = background[3:3 + FRAME[0], 52:52 + FRAME[1]]
+  template = camera[145:194, 145:194].copy()
+  tilt = [[-1.9, -0.8], [-2.5, -0.4], [-2.0, 0.4], [0.9, 1.1]]
+  truth = _placed(49, np.array([233.8, 193.8]), 0.66, -172.0, tilt=tilt)
+  found = jaxpso.detect(_frame(template, truth, background), template)
+  assert _error(found.homography, truth, 49) < 1.0
