@@ -20,7 +20,8 @@ or a folder of images.  Both write to DIR:
 evaluate runs methods (pso, pso:ncc, ic, ecc, sift, ...: `jaxpso.datasets.method`) over a
 dataset in a published layout and writes the benchmark toolkit's result files, per-frame
 errors, summary.md / summary.csv and precision.png / success.png to DIR; run again, it
-resumes where it stopped (`jaxpso.evaluate`).
+resumes where it stopped (`jaxpso.evaluate`); the tracker options but --similarity apply
+to every method but sift.
 Tracker options: --similarity, --motion, --dof, --swarm-size, --max-iterations,
 --search-radius, --levels, --resolution, --refine-steps (defaults: `jaxpso.TrackConfig`).
 """
@@ -60,7 +61,7 @@ def _default(name: str):
 
 
 def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
-  """The `TrackConfig` settings both commands take; None keeps the config's default."""
+  """The `TrackConfig` settings the commands take; None keeps the config's default."""
   group = parser.add_argument_group("tracker options (default: jaxpso.TrackConfig's)")
   group.add_argument("--similarity", choices=configs.SIMILARITIES,
                      help=f"similarity measure (default {_default('similarity')})")
@@ -85,10 +86,12 @@ def _add_tracker_options(parser: argparse.ArgumentParser) -> None:
   group.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
 
 
+_TRACKER_FIELDS = ("similarity", "motion", "dof", "swarm_size", "max_iterations", "search_radius",
+                   "levels", "resolution", "refine_steps")
+
+
 def _config(args) -> jaxpso.TrackConfig:
-  names = ("similarity", "motion", "dof", "swarm_size", "max_iterations", "search_radius",
-           "levels", "resolution", "refine_steps")
-  return jaxpso.TrackConfig(**{name: getattr(args, name) for name in names
+  return jaxpso.TrackConfig(**{name: getattr(args, name) for name in _TRACKER_FIELDS
                                if getattr(args, name) is not None})
 
 
@@ -236,7 +239,15 @@ def _track(args) -> int:
 
 
 def _evaluate(args) -> int:
-  report = jaxpso.evaluate(args.dataset, args.format, args.methods, args.out,
+  if args.similarity is not None:
+    raise ValueError("--similarity: give each method's as NAME:SIMILARITY in --methods")
+  overrides = {name: getattr(args, name) for name in _TRACKER_FIELDS[1:]
+               if getattr(args, name) is not None}
+  methods = [datasets.method(spec) for spec in args.methods.split(",")]
+  methods = [m if m.config is None or not overrides
+             else datasets.Method(m.name, dataclasses.replace(m.config, **overrides))
+             for m in methods]
+  report = jaxpso.evaluate(args.dataset, args.format, methods, args.out, key=args.seed,
                            sequences=args.sequences.split(",") if args.sequences else None)
   print(f"{report.ran} runs done, {report.resumed} read back from {args.out};"
         f" {report.seconds:.1f} s, {report.tracker_seconds:.1f} s of it in the trackers")
@@ -273,6 +284,7 @@ def _parser() -> argparse.ArgumentParser:
                         help="comma-separated NAME or NAME:SIMILARITY (default pso,ecc,sift)")
   evaluate.add_argument("--out", required=True, help="output folder (resumed if it exists)")
   evaluate.add_argument("--sequences", help="comma-separated sequence names (default all)")
+  _add_tracker_options(evaluate)
   evaluate.set_defaults(run=_evaluate)
   return parser
 

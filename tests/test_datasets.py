@@ -132,11 +132,11 @@ def test_a_resumed_run_runs_only_what_is_left_and_gives_the_same_table(tmp_path,
 
   real, calls = evaluation._run, []
 
-  def interrupted(entry, sequence):
+  def interrupted(entry, sequence, key):
     calls.append((sequence.name, entry.name))
     if len(calls) == 4:
       raise KeyboardInterrupt
-    return real(entry, sequence)
+    return real(entry, sequence, key)
 
   monkeypatch.setattr(evaluation, "_run", interrupted)
   with pytest.raises(KeyboardInterrupt):
@@ -172,6 +172,24 @@ def test_the_command_evaluates_a_dataset(tmp_path, capsys):
   assert "[2/2] nl_cerealII_s2 sift" in printed.err and "ETA" in printed.err
   assert sorted(os.listdir(out / "results" / "sift")) == ["nl_bookI_s1.txt", "nl_cerealII_s2.txt"]
   assert (out / "results" / "sift" / "nl_bookI_s1.txt").read_text().startswith("frame ulx")
+
+
+def test_the_command_passes_tracker_options_and_seed_to_every_tracker(tmp_path, capsys):
+  _dataset(tmp_path / "data", "tmt", count=1)
+  out = tmp_path / "out"
+  assert cli.main(["evaluate", str(tmp_path / "data"), "--format", "tmt", "--methods", "pso,sift",
+                   "--out", str(out), "--levels", "2", "--swarm-size", "16",
+                   "--max-iterations", "10", "--seed", "3"]) == 0
+  record = json.loads((out / "errors" / "pso-mi" / "nl_bookI_s1.json").read_text())
+  assert "swarm_size=16" in record["config"] and record["config"].endswith("key=3")
+  assert json.loads((out / "errors" / "sift" / "nl_bookI_s1.json").read_text())["config"] == (
+      "None, key=3")
+  capsys.readouterr()
+  assert "give each method's as NAME:SIMILARITY" in _error(
+      capsys, str(tmp_path / "data"), "--format", "tmt", "--out", str(out), "--similarity", "ncc")
+  assert "another configuration of pso-mi" in _error(
+      capsys, str(tmp_path / "data"), "--format", "tmt", "--out", str(out), "--methods", "pso",
+      "--levels", "2", "--swarm-size", "16", "--max-iterations", "10")  # seed 0 now
 
 
 def _error(capsys, *argv) -> str:

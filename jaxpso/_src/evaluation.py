@@ -158,7 +158,7 @@ def track_features(frames: Iterable, corners) -> tuple[np.ndarray, np.ndarray]:
   return np.stack(out), np.array(found)
 
 
-def _run(entry: Method, sequence: datasets.Sequence) -> dict:
+def _run(entry: Method, sequence: datasets.Sequence, key: int) -> dict:
   """One method on one sequence: its (T, 4, 2) corners (NaN before the first annotated frame),
   (T,) statuses (-1 there; the feature peer: 0 found, 2 not) and seconds."""
   from jaxpso._src.track import track  # track imports most of the package: load it on use
@@ -171,7 +171,7 @@ def _run(entry: Method, sequence: datasets.Sequence) -> dict:
       corners, found = track_features(frames, sequence.corners[first])
       status = np.where(found, 0, 2)
     else:
-      result = track(frames, sequence.corners[first], config=entry.config, key=0)
+      result = track(frames, sequence.corners[first], config=entry.config, key=key)
       corners, status = result.corners, result.status
   except ValueError as error:
     raise ValueError(f"sequence {sequence.name}, method {entry.name}: {error}") from None
@@ -203,7 +203,7 @@ def _from_json(values: list) -> np.ndarray:
   return np.array([math.inf if v == "inf" else v for v in values if v is not None], np.float64)
 
 
-def _scored(entry: Method, sequence: datasets.Sequence, run: dict) -> dict:
+def _scored(entry: Method, sequence: datasets.Sequence, run: dict, key: int) -> dict:
   """The per-frame record written as JSON: errors on the used frames (None elsewhere)."""
   corners = run["corners"]
   used = used_frames(sequence)
@@ -211,7 +211,7 @@ def _scored(entry: Method, sequence: datasets.Sequence, run: dict) -> dict:
   with np.errstate(invalid="ignore"):
     align = alignment_errors(sequence.corners, corners)
   align[~np.isfinite(align)] = math.inf
-  return {"sequence": sequence.name, "method": entry.name, "config": repr(entry.config),
+  return {"sequence": sequence.name, "method": entry.name, "config": _setup(entry, key),
           "frames": len(sequence),
           "attributes": list(sequence.attributes), "seconds": run["seconds"],
           "ms_per_frame": 1000 * run["seconds"] / max(len(sequence) - sequence.first - 1, 1),
@@ -342,7 +342,12 @@ def _progress(done: int, total: int, seconds: float, frames_done: int, frames_le
   print(f"[{done}/{total}] {text}  ETA {eta_text}", file=sys.stderr, flush=True)
 
 
-def evaluate(dataset, layout: str, methods, out, *, sequences=None,
+def _setup(entry: Method, key: int) -> str:
+  """What a run's result depends on besides the data: the config and the seed."""
+  return f"{entry.config!r}, key={key}"
+
+
+def evaluate(dataset, layout: str, methods, out, *, sequences=None, key: int = 0,
              progress: bool = True) -> Report:
   """Runs `methods` over the dataset and writes results, errors, table and curves to `out`.
 
@@ -352,6 +357,7 @@ def evaluate(dataset, layout: str, methods, out, *, sequences=None,
     methods: specs for `method` ("pso", "pso:ncc", "ic", "ecc", "sift", (name, TrackConfig)).
     out: the output folder; a folder of an earlier run on the same dataset is resumed.
     sequences: names of the sequences to evaluate (default all).
+    key: the trackers' int seed (the same for every sequence).
     progress: a line per run on stderr with the estimated time left.
 
   Returns:
@@ -386,7 +392,7 @@ def evaluate(dataset, layout: str, methods, out, *, sequences=None,
       if os.path.exists(path):
         with open(path) as handle:
           record = json.load(handle)
-        if record.get("config") != repr(entry.config):
+        if record.get("config") != _setup(entry, key):
           raise ValueError(f"{path} was made with another configuration of {entry.name}"
                            f" ({record.get('config')}); choose another --out or method name")
         records[(sequence.name, entry.name)] = record
@@ -396,11 +402,11 @@ def evaluate(dataset, layout: str, methods, out, *, sequences=None,
   tracker_seconds, frames_done = 0.0, 0
   frames_left = sum(len(s) for s, _, _ in todo)
   for done, (sequence, entry, path) in enumerate(todo, start=1):
-    run = _run(entry, sequence)
+    run = _run(entry, sequence, key)
     tracker_seconds += run["seconds"]
     _write_output(os.path.join(out, "results", entry.name), layout, sequence, entry.name,
                   run["corners"])
-    record = _scored(entry, sequence, run)
+    record = _scored(entry, sequence, run, key)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path + ".part", "w") as handle:
       json.dump(record, handle)
