@@ -95,7 +95,6 @@ GRID = 16  # trajectory samples per frame
 MIP_LEVELS = 4
 TRACKABLE_VISIBLE, TRACKABLE_BLUR_PX = 0.5, 8.0
 LOSS_PX, GOOD_PX, WITHIN = 20.0, 5.0, (5.0, 10.0, 20.0)
-SIFT_RATIO, SIFT_RANSAC_PX, SIFT_MIN = 0.75, 5.0, 8
 TRACKED, LOST = int(jaxpso.TrackStatus.TRACKED), int(jaxpso.TrackStatus.LOST)
 
 
@@ -504,33 +503,12 @@ def save_frames(seq: Sequence, folder: str, count: int = 6) -> None:
 
 
 def track_sift(frames: np.ndarray, box) -> tuple[np.ndarray, np.ndarray]:
-  """(T, 4, 2) corners and (T,) statuses by SIFT + RANSAC (TRACKED where a homography was found)."""
+  """(T, 4, 2) corners and (T,) statuses by SIFT + RANSAC (`jaxpso.datasets.track_features`;
+  TRACKED where a homography was found)."""
   x, y, w, h = box
-  sift = cv2.SIFT_create()
-  mask = np.zeros(frames[0].shape, np.uint8)
-  mask[y:y + h, x:x + w] = 255
-  keys, template = sift.detectAndCompute(frames[0], mask)
-  source = np.float32([k.pt for k in keys]).reshape(-1, 2) - np.float32([x, y])
-  matcher = cv2.BFMatcher(cv2.NORM_L2)
-  rect = np.array([[[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]]], np.float64)
-  homography = np.array([[1, 0, x], [0, 1, y], [0, 0, 1.0]])
-  corners, status = [cv2.perspectiveTransform(rect, homography)[0]], [TRACKED]
-  for frame in frames[1:]:
-    found = False
-    frame_keys, descriptors = sift.detectAndCompute(frame, None)
-    if template is not None and descriptors is not None and len(descriptors) >= 2:
-      pairs = matcher.knnMatch(template, descriptors, k=2)
-      good = [p[0] for p in pairs if len(p) == 2 and p[0].distance < SIFT_RATIO * p[1].distance]
-      if len(good) >= SIFT_MIN:
-        src = source[[m.queryIdx for m in good]]
-        dst = np.float32([frame_keys[m.trainIdx].pt for m in good])
-        estimate, inliers = cv2.findHomography(src, dst, cv2.RANSAC, SIFT_RANSAC_PX)
-        if (estimate is not None and np.all(np.isfinite(estimate))
-            and int(np.sum(inliers)) >= SIFT_MIN):
-          homography, found = estimate, True
-    corners.append(cv2.perspectiveTransform(rect, homography)[0])
-    status.append(TRACKED if found else LOST)
-  return np.stack(corners), np.array(status)
+  quad = np.array([[x, y], [x + w - 1, y], [x + w - 1, y + h - 1], [x, y + h - 1]], np.float64)
+  corners, found = jaxpso.datasets.track_features(frames, quad)
+  return corners, np.where(found, TRACKED, LOST)
 
 
 def run_method(method: str, seq: Sequence) -> dict:
