@@ -12,7 +12,7 @@ from jaxpso._src.datasets import LAYOUTS
 from jaxpso._src.datasets import PLANARTRACK_ATTRIBUTES
 from jaxpso._src.datasets import POT_ATTRIBUTES
 from jaxpso._src.datasets import Sequence
-from jaxpso._src.datasets import homography
+from jaxpso._src.datasets import frame_homographies
 from jaxpso._src.datasets import read
 from jaxpso._src.datasets import write
 from jaxpso._src.evaluation import FEATURE_PEER
@@ -32,6 +32,6 @@ from jaxpso._src.evaluation import used_frames
 
 __all__ = ("FEATURE_PEER", "LAYOUTS", "PLANARTRACK_ATTRIBUTES", "POT_ATTRIBUTES", "PRECISION_PX",
            "PRECISION_RANK_PX", "SUCCESS_RANK", "SUCCESS_THRESHOLDS", "Method", "Report",
-           "Sequence", "alignment_errors", "curve", "evaluate", "homography",
+           "Sequence", "alignment_errors", "curve", "evaluate", "frame_homographies",
            "homography_discrepancies", "method", "read", "track_features", "used_frames",
            "write")

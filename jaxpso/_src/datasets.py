@@ -40,6 +40,7 @@ from collections.abc import Iterable, Iterator
 
 import numpy as np
 
+from jaxpso._src import homography
 from jaxpso._src import video
 
 LAYOUTS = ("pot", "planartrack", "ucsb", "tmt", "plain")
@@ -149,25 +150,23 @@ def _is_number(text: str) -> bool:
   return True
 
 
-def homography(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-  """(3, 3) homography taking the (4, 2) corners a to b (h[2, 2] = 1); NaN where either is NaN."""
-  if np.isnan(a).any() or np.isnan(b).any():
-    return np.full((3, 3), math.nan)
-  rows = []
-  for (x, y), (u, v) in zip(a, b):
-    rows.append([x, y, 1, 0, 0, 0, -u * x, -u * y])
-    rows.append([0, 0, 0, x, y, 1, -v * x, -v * y])
+def frame_homographies(corners: np.ndarray) -> np.ndarray:
+  """(T, 3, 3) float64 homographies from the first annotated frame's (T, 4, 2) corners to each
+  frame's (`homography.host_homography_from_corners`); NaN where a frame is not annotated or
+  its corners are degenerate."""
+  annotated = ~np.isnan(corners).any(axis=(1, 2))
+  out = np.full((len(corners), 3, 3), math.nan)
+  first = corners[np.argmax(annotated)][None]
   try:
-    h = np.linalg.solve(np.array(rows), b.reshape(-1))
-  except np.linalg.LinAlgError:  # three corners on a line
-    return np.full((3, 3), math.nan)
-  return np.append(h, 1.0).reshape(3, 3)
-
-
-def _from_corners(corners: np.ndarray) -> np.ndarray:
-  """(T, 3, 3) homographies from the first annotated frame's corners to each frame's."""
-  first = corners[int(np.argmax(~np.isnan(corners[:, 0, 0])))]
-  return np.stack([homography(first, c) for c in corners])
+    out[annotated] = homography.host_homography_from_corners(
+        np.broadcast_to(first, corners[annotated].shape), corners[annotated])
+  except np.linalg.LinAlgError:  # three corners on a line somewhere: each frame on its own
+    for t in np.flatnonzero(annotated):
+      try:
+        out[t] = homography.host_homography_from_corners(first, corners[t][None])[0]
+      except np.linalg.LinAlgError:
+        pass
+  return out
 
 
 def _count_frames(source: str) -> int | None:
@@ -245,7 +244,7 @@ def _toolkit(root: str, layout: str) -> list[Sequence]:
         raise ValueError(f"{path}: {len(homographies)} lines, but {points} has {len(corners)}")
       homographies[np.isnan(corners[:, 0, 0])] = math.nan
     else:
-      homographies = _from_corners(corners)
+      homographies = frame_homographies(corners)
     if layout == "pot":
       match = re.search(r"_(\d)$", name)
       attributes = ((POT_ATTRIBUTES[int(match.group(1)) - 1],)
@@ -281,7 +280,7 @@ def _mtf(root: str, layout: str) -> list[Sequence]:
       attributes = (re.sub(r"\d+$", "", name.split("_", 1)[1]),)
     source = os.path.join(root, name)
     _check(source, path, corners)
-    sequences.append(Sequence(name, source, corners, _from_corners(corners),
+    sequences.append(Sequence(name, source, corners, frame_homographies(corners),
                               np.zeros(len(corners), bool), attributes, path))
   return sequences
 
@@ -312,7 +311,7 @@ def _plain_one(folder: str) -> Sequence:
       attributes = tuple(line.strip() for line in handle if line.strip())
   _check(source, path, corners)
   return Sequence(os.path.basename(os.path.abspath(folder)), source, corners,
-                  _from_corners(corners), np.isnan(corners[:, 0, 0]), attributes, path)
+                  frame_homographies(corners), np.isnan(corners[:, 0, 0]), attributes, path)
 
 
 def _plain(root: str, layout: str) -> list[Sequence]:
@@ -362,10 +361,10 @@ def write_points(path: str, corners: np.ndarray) -> None:
     handle.writelines(_format(np.nan_to_num(c, nan=0.0)) + "\n" for c in corners)
 
 
-def write_homographies(path: str, corners: np.ndarray) -> None:
-  """The frame 0 → t homographies of (T, 4, 2) corners, 9 numbers a line (identity where NaN)."""
+def write_homographies(path: str, homographies: np.ndarray) -> None:
+  """(T, 3, 3) frame 0 → t homographies, 9 numbers a line (the identity where NaN)."""
   with open(path, "w") as handle:
-    for h in _from_corners(corners):
+    for h in homographies:
       handle.write(_format(np.eye(3) if np.isnan(h).any() else h) + "\n")
 
 
@@ -431,7 +430,7 @@ def write(root, layout: str, name: str, frames: Iterable, corners, *, excluded=N
     stem = os.path.join(annotation, name)
     write_points(stem + ("_gt_points.txt" if layout == "pot" else ".txt"), corners)
     write_homographies(stem + ("_gt_homography.txt" if layout == "pot" else "_homography.txt"),
-                       corners)
+                       frame_homographies(corners))
     flags = np.zeros(len(corners), bool) if excluded is None else np.asarray(excluded, bool)
     with open(stem + "_flag.txt", "w") as handle:
       handle.writelines(f"{int(f)}\n" for f in flags)

@@ -182,13 +182,13 @@ def _run(entry: Method, sequence: datasets.Sequence, key: int) -> dict:
 
 
 def _write_output(folder: str, layout: str, sequence: datasets.Sequence, name: str,
-                  corners: np.ndarray) -> None:
+                  corners: np.ndarray, homographies: np.ndarray) -> None:
   """The tracker's corners in the files the benchmark's toolkit reads."""
   os.makedirs(folder, exist_ok=True)
   if layout in ("pot", "planartrack"):
     stem = os.path.join(folder, f"{sequence.name}_{name}")
     datasets.write_points(stem + ".txt", corners)
-    datasets.write_homographies(stem + "_homography.txt", corners)
+    datasets.write_homographies(stem + "_homography.txt", homographies)
   elif layout in ("ucsb", "tmt"):
     datasets.write_mtf(os.path.join(folder, sequence.name + ".txt"), corners)
   else:
@@ -204,10 +204,10 @@ def _from_json(values: list) -> np.ndarray:
 
 
 def _scored(entry: Method, sequence: datasets.Sequence, run: dict, key: int) -> dict:
-  """The per-frame record written as JSON: errors on the used frames (None elsewhere)."""
+  """The per-frame record written as JSON: errors on the used frames (None elsewhere).  run:
+  `_run`'s, with the (T, 3, 3) `datasets.frame_homographies` of its corners."""
   corners = run["corners"]
   used = used_frames(sequence)
-  estimate = np.stack([datasets.homography(corners[sequence.first], c) for c in corners])
   with np.errstate(invalid="ignore"):
     align = alignment_errors(sequence.corners, corners)
   align[~np.isfinite(align)] = math.inf
@@ -217,7 +217,7 @@ def _scored(entry: Method, sequence: datasets.Sequence, run: dict, key: int) -> 
           "ms_per_frame": 1000 * run["seconds"] / max(len(sequence) - sequence.first - 1, 1),
           "alignment_error": _json_errors(align, used),
           "homography_discrepancy": _json_errors(
-              homography_discrepancies(sequence.homographies, estimate), used),
+              homography_discrepancies(sequence.homographies, run["homographies"]), used),
           "status": [int(s) for s in run["status"]]}
 
 
@@ -404,8 +404,9 @@ def evaluate(dataset, layout: str, methods, out, *, sequences=None, key: int = 0
   for done, (sequence, entry, path) in enumerate(todo, start=1):
     run = _run(entry, sequence, key)
     tracker_seconds += run["seconds"]
+    run["homographies"] = datasets.frame_homographies(run["corners"])
     _write_output(os.path.join(out, "results", entry.name), layout, sequence, entry.name,
-                  run["corners"])
+                  run["corners"], run["homographies"])
     record = _scored(entry, sequence, run, key)
     os.makedirs(os.path.dirname(path), exist_ok=True)
     with open(path + ".part", "w") as handle:
