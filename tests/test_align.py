@@ -473,7 +473,7 @@ def test_a_budget_does_not_touch_a_call_within_it():
 
 
 def test_the_result_is_never_worse_than_the_start_refined_alone():
-  """Under noise the right match's quality stays far under the thresholds and every stage runs:
+  """Under noise the right match's quality stays under the thresholds and the searches run:
   whatever they find, the result scores at least what Gauss–Newton from the start scores."""
   rng = np.random.default_rng(3)
   noisy = np.clip(IMAGE + rng.normal(0, 0.08, IMAGE.shape), 0, 1).astype(np.float32)
@@ -484,3 +484,17 @@ def test_the_result_is_never_worse_than_the_start_refined_alone():
     refined = jaxpso.align(noisy, TEMPLATE, start, config=alone, key=seed)
     assert float(found.score) >= float(refined.score), seed
     assert int(found.num_evaluations) > int(refined.num_evaluations)  # the searches ran
+
+
+def test_three_agreeing_estimates_settle_a_noisy_match_at_any_quality():
+  """Under strong noise the right match's quality (0.78-0.80 here) stays under retry_quality:
+  the starts' refinement and both quick searches agreeing on it end the call
+  (`register._VOTES`), where every later search used to run (5 000-11 500
+  evaluations on 5 of these 6 starts, and 2 ended 0.52-0.55 px off)."""
+  rng = np.random.default_rng(3)
+  noisy = np.clip(IMAGE + rng.normal(0, 0.08, IMAGE.shape), 0, 1).astype(np.float32)
+  for seed in range(6):
+    found = jaxpso.align(noisy, TEMPLATE, _perturbed(seed, 6.0), config=CONFIG, key=seed)
+    assert float(found.quality) < CONFIG.retry_quality
+    assert int(found.num_evaluations) < 600, (seed, int(found.num_evaluations))
+    assert _corner_error(found.homography) < 0.35, seed

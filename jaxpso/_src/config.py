@@ -72,7 +72,11 @@ class TrackConfig:
       seeds; a quick search's refined best is the result where it reaches
       `retry_quality` or agrees within 1 px with the best so far on a
       quality of at least 0.8, and only otherwise the search of
-      `max_iterations` runs.  0 skips them.
+      `max_iterations` runs.  0 skips them.  Whatever the quality, `align`
+      also settles on its best once three of its estimates (the start's
+      refinement and each search's) agree with it within 1 px: noise or a
+      real change of appearance keeps a right match's quality far under
+      the thresholds.
     patience (int | None): PSO stagnation stop (None disables).
     variant (str): PSO variant (`jaxpso.pso.VARIANTS`).
     topology (str): PSO topology (`jaxpso.pso.TOPOLOGIES`).

@@ -48,6 +48,19 @@ from jaxpso._src import template as templates
 # Two registrations agree when no template corner is further apart than this
 # (full-resolution pixels).
 _AGREE_PX = 1.0
+# align settles on its best once this many of its estimates agree with it (the
+# starts' refinement and each search's, `_seen_and_votes`), whatever its
+# quality: the searches start from random particles over the whole box, so
+# three agreeing on one basin is evidence that it is the box's best, and on
+# noisy or real image pairs the right alignment's quality stays far under
+# retry_quality (0.3-0.7: benchmarks/results/runtime_cases.md).  Two were not
+# enough: a quick search and the start can share a wrong basin
+# (Baker-Matthews, gain, σ 4: 6.2 px off at 0.55, the full search then
+# finding the truth at 0.98).
+_VOTES = 3
+# Estimates `State.seen` holds: the starts' refinement and the first searches
+# (a later one replaces the last).
+_SEEN = 8
 # `track` also accepts a start within this margin of its last search's
 # quality, where that was at least _MIN_REFERENCE (`_advance_track`).
 _REFERENCE_MARGIN, _MIN_REFERENCE = 0.02, 0.8
@@ -147,6 +160,9 @@ class State(NamedTuple):
     retries: (C,) int32 align's retries run.
     spent: (C,) int32 the evaluations of every stage run so far.
     exhausted: (C,) bool: `Knobs.max_evaluations` ended the stages early.
+    seen: (C, _SEEN, 4, 2) align: the template corners of its estimates (the
+      starts' best, then each search's), for `_seen_and_votes`.
+    num_seen: (C,) int32 how many of `seen` are filled.
   """
   stage: jax.Array
   best: problems.Candidate
@@ -156,6 +172,8 @@ class State(NamedTuple):
   retries: jax.Array
   spent: jax.Array
   exhausted: jax.Array
+  seen: jax.Array
+  num_seen: jax.Array
 
 
 def _budgeted(state: State, following, found: problems.Candidate, knobs, done: int) -> tuple:
@@ -230,6 +248,27 @@ def _starts(state: State, found: problems.Candidate, contexts: problems.Context,
   return merged, start, coarse_next
 
 
+def _seen_and_votes(state: State, found: problems.Candidate, best: problems.Candidate,
+                    contexts: problems.Context) -> tuple:
+  """(seen, num_seen, votes (C,) int32): a search's `found` recorded (after the starts' best, its
+  first), and how many of the recorded estimates agree with `best` within _AGREE_PX."""
+  size = contexts.template.size
+  quad = jax.vmap(lambda h, s: homography.apply_to_points(h, motion.corners(s))[0])
+
+  def push(seen, count, h):
+    slot = jnp.minimum(count, _SEEN - 1)
+    return seen.at[jnp.arange(seen.shape[0]), slot].set(quad(h, size)), count + 1
+
+  first = state.num_seen == 0
+  seen, count = push(state.seen, state.num_seen, state.best.homography)
+  seen = jnp.where(first[:, None, None, None], seen, state.seen)
+  count = jnp.where(first, count, state.num_seen)
+  seen, count = push(seen, count, found.homography)
+  gaps = jnp.max(jnp.linalg.norm(seen - quad(best.homography, size)[:, None], axis=-1), axis=-1)
+  filled = jnp.arange(_SEEN)[None] < jnp.minimum(count, _SEEN)[:, None]
+  return seen, count, jnp.sum(filled & (gaps <= _AGREE_PX), axis=1, dtype=jnp.int32)
+
+
 def _advance_align(state: State, found: problems.Candidate, contexts: problems.Context,
                    knobs: problems.Knobs) -> State:
   """align's transitions: accepted start → done; else coarser start, quick searches, search, retry.
@@ -248,14 +287,20 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
   accepted = ((start.quality >= knobs.accept_quality)
               | ((stage == _COARSER) & agree & (start.quality >= _MIN_REFERENCE)))
   searched = better(found, state.best)._replace(confirmed=agree)
-  # A search that agrees with the best so far confirms it only on a quality
-  # of at least _MIN_REFERENCE: in 8 iterations the swarm can stay in the
-  # start's wrong basin (Baker–Matthews, shading, σ 8: 3.6 px off at 0.65),
-  # and the full search in a quick one's (gamma, σ 20: 22 px off at 0.70).
+  searching = stage >= _QUICK
+  seen, num_seen, votes = _seen_and_votes(state, found, batching.select(
+      stage <= _SEARCH, searched, merged), contexts)
+  seen = jnp.where(searching[:, None, None, None], seen, state.seen)
+  num_seen = jnp.where(searching, num_seen, state.num_seen)
+  # A search that agrees with the best so far confirms it alone only on a
+  # quality of at least _MIN_REFERENCE: in 8 iterations the swarm can stay in
+  # the start's wrong basin (Baker–Matthews, shading, σ 8: 3.6 px off at
+  # 0.65), and the full search in a quick one's (gamma, σ 20: 22 px off at
+  # 0.70); _VOTES agreeing estimates confirm it at any quality.
   settled = ((searched.quality >= knobs.retry_quality)
-             | (agree & (searched.quality >= _MIN_REFERENCE)))
+             | (agree & (searched.quality >= _MIN_REFERENCE)) | (votes >= _VOTES))
   again = ((stage == _RETRY) & (merged.quality < knobs.retry_quality) & ~agree
-           & (state.retries < knobs.retries))
+           & (votes < _VOTES) & (state.retries < knobs.retries))
   best = batching.select(starting, start._replace(confirmed=accepted),
                          batching.select(stage <= _SEARCH, searched, merged))
   search = jnp.where(knobs.quick_iterations > 0, _QUICK, _SEARCH)
@@ -268,8 +313,8 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
       jnp.where(again, _RETRY, done))
   following, spent, exhausted = _budgeted(state, following, found, knobs, done)
   return State(following, best, state.anchor, state.recovered,
-               state.searched | (stage >= _QUICK), state.retries + (stage == _RETRY), spent,
-               exhausted)
+               state.searched | searching, state.retries + (stage == _RETRY), spent,
+               exhausted, seen, num_seen)
 
 
 def _advance_track(state: State, found: problems.Candidate, contexts: problems.Context,
@@ -296,7 +341,7 @@ def _advance_track(state: State, found: problems.Candidate, contexts: problems.C
   following, spent, exhausted = _budgeted(state, following, found, knobs, done)
   return State(following, best, batching.select(stage == 3, found, state.anchor),
                state.recovered | (stage == 3), state.searched | (stage == 2) | (stage == 4),
-               state.retries, spent, exhausted)
+               state.retries, spent, exhausted, state.seen, state.num_seen)
 
 
 PIPELINES = {"align": (ALIGN, _advance_align), "track": (TRACK, _advance_track)}
@@ -314,7 +359,7 @@ def _initial(count: int, config) -> State:
                             confirmed=jnp.zeros(count, bool), base=zero, num_iterations=zero,
                             num_evaluations=zero)
   return State(zero, none, none, jnp.zeros(count, bool), jnp.zeros(count, bool), zero, zero,
-               jnp.zeros(count, bool))
+               jnp.zeros(count, bool), jnp.zeros((count, _SEEN, 4, 2), jnp.float32), zero)
 
 
 def _loop(contexts: problems.Context, state: State, knobs: problems.Knobs, pipeline: str,
