@@ -488,8 +488,8 @@ def test_the_result_is_never_worse_than_the_start_refined_alone():
 
 def test_three_agreeing_estimates_settle_a_noisy_match_at_any_quality():
   """Under strong noise the right match's quality (0.78-0.80 here) stays under retry_quality:
-  the starts' refinement and both quick searches agreeing on it end the call
-  (`register._VOTES`), where every later search used to run (5 000-11 500
+  three of the stages' estimates agreeing on it end the call after a quick
+  search (`register._VOTES`), where every later search used to run (5 000-11 500
   evaluations on 5 of these 6 starts, and 2 ended 0.52-0.55 px off)."""
   rng = np.random.default_rng(3)
   noisy = np.clip(IMAGE + rng.normal(0, 0.08, IMAGE.shape), 0, 1).astype(np.float32)

@@ -48,18 +48,18 @@ from jaxpso._src import template as templates
 # Two registrations agree when no template corner is further apart than this
 # (full-resolution pixels).
 _AGREE_PX = 1.0
-# align settles on its best once this many of its estimates agree with it (the
-# starts' refinement and each search's, `_seen_and_votes`), whatever its
-# quality: the searches start from random particles over the whole box, so
-# three agreeing on one basin is evidence that it is the box's best, and on
-# noisy or real image pairs the right alignment's quality stays far under
-# retry_quality (0.3-0.7: benchmarks/results/runtime_cases.md).  Two were not
-# enough: a quick search and the start can share a wrong basin
-# (Baker-Matthews, gain, σ 4: 6.2 px off at 0.55, the full search then
-# finding the truth at 0.98).
+# After a search, align settles on its best once this many of its stages'
+# estimates (Gauss–Newton from the start at level 1 and at the coarsest
+# level, each search's refined best: `_seen_and_votes`) agree with it,
+# whatever its quality: the searches start from random particles over the
+# whole box, so agreeing with them on one basin is evidence that it is the
+# box's best, and on noisy or real image pairs the right alignment's quality
+# stays far under retry_quality (0.3-0.7: benchmarks/results/runtime_cases.md).
+# Two were not enough: a quick search and the coarser start can share a
+# wrong basin (Baker-Matthews, gain, σ 4: 6.2 px off at 0.55, the full
+# search then finding the truth at 0.98).
 _VOTES = 3
-# Estimates `State.seen` holds: the starts' refinement and the first searches
-# (a later one replaces the last).
+# Estimates `State.seen` holds (a later one replaces the last).
 _SEEN = 8
 # `track` also accepts a start within this margin of its last search's
 # quality, where that was at least _MIN_REFERENCE (`_advance_track`).
@@ -160,8 +160,8 @@ class State(NamedTuple):
     retries: (C,) int32 align's retries run.
     spent: (C,) int32 the evaluations of every stage run so far.
     exhausted: (C,) bool: `Knobs.max_evaluations` ended the stages early.
-    seen: (C, _SEEN, 4, 2) align: the template corners of its estimates (the
-      starts' best, then each search's), for `_seen_and_votes`.
+    seen: (C, _SEEN, 4, 2) align: the template corners of each stage's
+      estimate, for `_seen_and_votes`.
     num_seen: (C,) int32 how many of `seen` are filled.
   """
   stage: jax.Array
@@ -250,23 +250,17 @@ def _starts(state: State, found: problems.Candidate, contexts: problems.Context,
 
 def _seen_and_votes(state: State, found: problems.Candidate, best: problems.Candidate,
                     contexts: problems.Context) -> tuple:
-  """(seen, num_seen, votes (C,) int32): a search's `found` recorded (after the starts' best, its
-  first), and how many of the recorded estimates agree with `best` within _AGREE_PX."""
-  size = contexts.template.size
+  """(seen, num_seen, votes (C,) int32): `found` recorded, and how many of the recorded
+  estimates agree with `best` within _AGREE_PX."""
   quad = jax.vmap(lambda h, s: homography.apply_to_points(h, motion.corners(s))[0])
-
-  def push(seen, count, h):
-    slot = jnp.minimum(count, _SEEN - 1)
-    return seen.at[jnp.arange(seen.shape[0]), slot].set(quad(h, size)), count + 1
-
-  first = state.num_seen == 0
-  seen, count = push(state.seen, state.num_seen, state.best.homography)
-  seen = jnp.where(first[:, None, None, None], seen, state.seen)
-  count = jnp.where(first, count, state.num_seen)
-  seen, count = push(seen, count, found.homography)
-  gaps = jnp.max(jnp.linalg.norm(seen - quad(best.homography, size)[:, None], axis=-1), axis=-1)
-  filled = jnp.arange(_SEEN)[None] < jnp.minimum(count, _SEEN)[:, None]
-  return seen, count, jnp.sum(filled & (gaps <= _AGREE_PX), axis=1, dtype=jnp.int32)
+  slot = jnp.minimum(state.num_seen, _SEEN - 1)
+  seen = state.seen.at[jnp.arange(slot.shape[0]), slot].set(
+      quad(found.homography, contexts.template.size))
+  count = state.num_seen + 1
+  gaps = jnp.linalg.norm(seen - quad(best.homography, contexts.template.size)[:, None], axis=-1)
+  agree = (jnp.arange(_SEEN)[None] < jnp.minimum(count, _SEEN)[:, None]) & (
+      jnp.max(gaps, axis=-1) <= _AGREE_PX)
+  return seen, count, jnp.sum(agree, axis=1, dtype=jnp.int32)
 
 
 def _advance_align(state: State, found: problems.Candidate, contexts: problems.Context,
@@ -287,11 +281,8 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
   accepted = ((start.quality >= knobs.accept_quality)
               | ((stage == _COARSER) & agree & (start.quality >= _MIN_REFERENCE)))
   searched = better(found, state.best)._replace(confirmed=agree)
-  searching = stage >= _QUICK
   seen, num_seen, votes = _seen_and_votes(state, found, batching.select(
       stage <= _SEARCH, searched, merged), contexts)
-  seen = jnp.where(searching[:, None, None, None], seen, state.seen)
-  num_seen = jnp.where(searching, num_seen, state.num_seen)
   # A search that agrees with the best so far confirms it alone only on a
   # quality of at least _MIN_REFERENCE: in 8 iterations the swarm can stay in
   # the start's wrong basin (Baker–Matthews, shading, σ 8: 3.6 px off at
@@ -313,7 +304,7 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
       jnp.where(again, _RETRY, done))
   following, spent, exhausted = _budgeted(state, following, found, knobs, done)
   return State(following, best, state.anchor, state.recovered,
-               state.searched | searching, state.retries + (stage == _RETRY), spent,
+               state.searched | (stage >= _QUICK), state.retries + (stage == _RETRY), spent,
                exhausted, seen, num_seen)
 
 
