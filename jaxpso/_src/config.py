@@ -73,10 +73,12 @@ class TrackConfig:
       `retry_quality` or agrees within 1 px with the best so far on a
       quality of at least 0.8, and only otherwise the search of
       `max_iterations` runs.  0 skips them.  Whatever the quality, `align`
-      also settles on its best once three of its estimates (the start's
-      refinement and each search's) agree with it within 1 px: noise or a
-      real change of appearance keeps a right match's quality far under
-      the thresholds.
+      also settles on its best once three of its estimates (Gauss–Newton
+      from the start at two levels, each search's) agree with it within
+      1 px: noise or a real change of appearance keeps a right match's
+      quality far under the thresholds.  `track` runs one quick search
+      where the start falls short, and the full search only where that is
+      neither accepted nor, not lost, confirmed by both starts.
     patience (int | None): PSO stagnation stop (None disables).
     variant (str): PSO variant (`jaxpso.pso.VARIANTS`).
     topology (str): PSO topology (`jaxpso.pso.TOPOLOGIES`).

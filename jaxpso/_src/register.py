@@ -143,9 +143,12 @@ a quick search and a second one (other seeds), the search, the retry one
 level finer (run again with other seeds, up to `TrackConfig.retries` times,
 while it disagrees with the best)."""
 _START, _COARSER, _QUICK, _QUICK_AGAIN, _SEARCH, _RETRY = range(len(ALIGN))
-TRACK = (Stage(), Stage(top=1), Stage(swarm=True, top=2), Stage(base=1),
-         Stage(swarm=True, wide=True, widen=True, translation=True, top=2, base=1))
-"""`track`'s stages: the start, a coarser start, the search, then the recovery from the last good estimate."""
+TRACK = (Stage(), Stage(top=1), Stage(swarm=True, quick=True, top=2), Stage(swarm=True, top=2),
+         Stage(base=1), Stage(swarm=True, wide=True, widen=True, translation=True, top=2, base=1))
+"""`track`'s stages: the start, a coarser start, a quick search, the search, then the recovery
+from the last good estimate."""
+(_T_START, _T_COARSER, _T_QUICK, _T_SEARCH, _T_RECOVERY_START,
+ _T_RECOVERY) = range(len(TRACK))
 
 
 class State(NamedTuple):
@@ -310,29 +313,44 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
 
 def _advance_track(state: State, found: problems.Candidate, contexts: problems.Context,
                    knobs: problems.Knobs) -> State:
-  """track's transitions: accepted start → done; else coarser start, search; short of `lost_quality`: recovery."""
+  """track's transitions: accepted start → done; else coarser start, quick search, search; short
+  of `lost_quality`: recovery."""
   stage, done = state.stage, len(TRACK)
   # Also accepted: within _REFERENCE_MARGIN of the quality the region's last
   # search reached (noise and blur lower the right alignment's quality too),
   # unless that was under _MIN_REFERENCE (low texture: too uncertain).
   reference = contexts.reference
   merged, start, coarse_next = _starts(state, found, contexts, knobs)
-  quality = jnp.where(stage <= 1, start.quality, found.quality)  # the starts', or the recovery's
+  searched = better(found, state.best)
+  quality = jnp.select([stage <= _T_COARSER, stage == _T_QUICK], [start.quality, searched.quality],
+                       found.quality)  # the starts', the quick search's or the recovery's
   accepted = ((quality >= knobs.accept_quality)
               | ((reference >= _MIN_REFERENCE) & (quality >= reference - _REFERENCE_MARGIN)))
-  searched = better(found, state.best)
+  # The quick search settles a frame as align's searches do (`_VOTES`), if
+  # the match is not lost: the starts' two refinements and the quick search
+  # agreeing spare the full search on a frame the start alone did not settle
+  # (a jump, blur, the first frames before a search set the reference).
+  seen, num_seen, votes = _seen_and_votes(state, found, searched, contexts)
+  quick_done = accepted | ((votes >= _VOTES) & (searched.quality >= knobs.lost_quality))
   recovered = better(found, state.anchor)
-  best = batching.select(stage <= 1, start, batching.select(stage == 2, searched, batching.select(
-      stage == 3, batching.select(accepted, merged, state.best), better(state.best, recovered))))
+  best = batching.select(stage <= _T_COARSER, start, batching.select(
+      stage <= _T_SEARCH, searched, batching.select(
+          stage == _T_RECOVERY_START, batching.select(accepted, merged, state.best),
+          better(state.best, recovered))))
+  search = jnp.where(knobs.quick_iterations > 0, _T_QUICK, _T_SEARCH)
   following = jnp.select(
-      [stage == 0, stage == 1, stage == 2, stage == 3],
-      [jnp.where(accepted, done, jnp.where(coarse_next, 1, 2)), jnp.where(accepted, done, 2),
-       jnp.where(searched.quality >= knobs.lost_quality, done, 3),
-       jnp.where(accepted, done, 4)], done)
+      [stage == _T_START, stage == _T_COARSER, stage == _T_QUICK, stage == _T_SEARCH,
+       stage == _T_RECOVERY_START],
+      [jnp.where(accepted, done, jnp.where(coarse_next, _T_COARSER, search)),
+       jnp.where(accepted, done, search), jnp.where(quick_done, done, _T_SEARCH),
+       jnp.where(searched.quality >= knobs.lost_quality, done, _T_RECOVERY_START),
+       jnp.where(accepted, done, _T_RECOVERY)], done)
   following, spent, exhausted = _budgeted(state, following, found, knobs, done)
-  return State(following, best, batching.select(stage == 3, found, state.anchor),
-               state.recovered | (stage == 3), state.searched | (stage == 2) | (stage == 4),
-               state.retries, spent, exhausted, state.seen, state.num_seen)
+  return State(following, best,
+               batching.select(stage == _T_RECOVERY_START, found, state.anchor),
+               state.recovered | (stage == _T_RECOVERY_START),
+               state.searched | (stage == _T_QUICK) | (stage == _T_SEARCH) | (stage == _T_RECOVERY),
+               state.retries, spent, exhausted, seen, num_seen)
 
 
 PIPELINES = {"align": (ALIGN, _advance_align), "track": (TRACK, _advance_track)}
