@@ -8,7 +8,8 @@ compiled program: the stages of `jaxpso._src.register` (Gauss–Newton from
 the start; when that does not reach `TrackConfig.accept_quality`, a coarser
 start, up to two quick swarms of `TrackConfig.quick_iterations` and
 Gauss–Newton from their best, then where they fall short the full swarm; a
-retry when the searches disagree on a poor match).  `TrackConfig` (`jaxpso._src.config`)
+retry when the searches disagree on a poor match; settled at any quality
+once three of these estimates agree).  `TrackConfig` (`jaxpso._src.config`)
 holds the settings; its `method` swaps the pipeline for a gradient baseline
 (`jaxpso._src.baselines`).  Neither the image's nor the template's size,
 nor any setting but the few `TrackConfig.statics`, enters the compiled

@@ -48,7 +48,8 @@ from jaxpso._src import template as templates
 # Two registrations agree when no template corner is further apart than this
 # (full-resolution pixels).
 _AGREE_PX = 1.0
-# After a search, align settles on its best once this many of its stages'
+# After a search, align settles on its best (track: a quick search settles a
+# frame not lost) once this many of its stages'
 # estimates (Gauss–Newton from the start at level 1 and at the coarsest
 # level, each search's refined best: `_seen_and_votes`) agree with it,
 # whatever its quality: the searches start from random particles over the
@@ -163,8 +164,8 @@ class State(NamedTuple):
     retries: (C,) int32 align's retries run.
     spent: (C,) int32 the evaluations of every stage run so far.
     exhausted: (C,) bool: `Knobs.max_evaluations` ended the stages early.
-    seen: (C, _SEEN, 4, 2) align: the template corners of each stage's
-      estimate, for `_seen_and_votes`.
+    seen: (C, _SEEN, 4, 2) the template corners of each stage's estimate,
+      for `_seen_and_votes`.
     num_seen: (C,) int32 how many of `seen` are filled.
   """
   stage: jax.Array
