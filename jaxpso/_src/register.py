@@ -164,8 +164,8 @@ class State(NamedTuple):
     retries: (C,) int32 align's retries run.
     spent: (C,) int32 the evaluations of every stage run so far.
     exhausted: (C,) bool: `Knobs.max_evaluations` ended the stages early.
-    seen: (C, _SEEN, 4, 2) the template corners of each stage's estimate,
-      for `_seen_and_votes`.
+    seen: (C, _SEEN, 3, 3) each stage's estimate (homography), for
+      `_seen_and_votes`.
     num_seen: (C,) int32 how many of `seen` are filled.
   """
   stage: jax.Array
@@ -255,15 +255,13 @@ def _starts(state: State, found: problems.Candidate, contexts: problems.Context,
 def _seen_and_votes(state: State, found: problems.Candidate, best: problems.Candidate,
                     contexts: problems.Context) -> tuple:
   """(seen, num_seen, votes (C,) int32): `found` recorded, and how many of the recorded
-  estimates agree with `best` within _AGREE_PX."""
-  quad = jax.vmap(lambda h, s: homography.apply_to_points(h, motion.corners(s))[0])
+  estimates agree with `best` within _AGREE_PX (`corner_gap`)."""
   slot = jnp.minimum(state.num_seen, _SEEN - 1)
-  seen = state.seen.at[jnp.arange(slot.shape[0]), slot].set(
-      quad(found.homography, contexts.template.size))
+  seen = state.seen.at[jnp.arange(slot.shape[0]), slot].set(found.homography)
   count = state.num_seen + 1
-  gaps = jnp.linalg.norm(seen - quad(best.homography, contexts.template.size)[:, None], axis=-1)
-  agree = (jnp.arange(_SEEN)[None] < jnp.minimum(count, _SEEN)[:, None]) & (
-      jnp.max(gaps, axis=-1) <= _AGREE_PX)
+  gaps = jax.vmap(jax.vmap(corner_gap, (0, None, None)))(seen, best.homography,
+                                                         contexts.template.size)
+  agree = (jnp.arange(_SEEN)[None] < jnp.minimum(count, _SEEN)[:, None]) & (gaps <= _AGREE_PX)
   return seen, count, jnp.sum(agree, axis=1, dtype=jnp.int32)
 
 
@@ -369,7 +367,7 @@ def _initial(count: int, config) -> State:
                             confirmed=jnp.zeros(count, bool), base=zero, num_iterations=zero,
                             num_evaluations=zero)
   return State(zero, none, none, jnp.zeros(count, bool), jnp.zeros(count, bool), zero, zero,
-               jnp.zeros(count, bool), jnp.zeros((count, _SEEN, 4, 2), jnp.float32), zero)
+               jnp.zeros(count, bool), jnp.zeros((count, _SEEN, 3, 3), jnp.float32), zero)
 
 
 def _loop(contexts: problems.Context, state: State, knobs: problems.Knobs, pipeline: str,
