@@ -241,8 +241,8 @@ def _track(args) -> int:
 def _evaluate(args) -> int:
   if args.similarity is not None:
     raise ValueError("--similarity: give each method's as NAME:SIMILARITY in --methods")
-  overrides = {name: getattr(args, name) for name in _TRACKER_FIELDS[1:]
-               if getattr(args, name) is not None}
+  overrides = {name: getattr(args, name) for name in _TRACKER_FIELDS
+               if name != "similarity" and getattr(args, name) is not None}
   methods = [datasets.method(spec) for spec in args.methods.split(",")]
   methods = [m if m.config is None or not overrides
              else datasets.Method(m.name, dataclasses.replace(m.config, **overrides))

@@ -59,6 +59,9 @@ VIDEO_EXTENSIONS = (".avi", ".mp4", ".mov", ".mkv", ".m4v", ".mpg", ".mpeg", ".w
 """File name endings taken for a sequence's video."""
 
 _MTF_HEADER = "frame ulx uly urx ury lrx lry llx lly"
+# The toolkits' annotation files: annotation/<seq><corners>, annotation/<seq><homographies>.
+_ANNOTATION_SUFFIXES = {"pot": ("_gt_points.txt", "_gt_homography.txt"),
+                        "planartrack": (".txt", "_homography.txt")}
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -210,8 +213,7 @@ def _check(source: str, annotation: str, corners: np.ndarray) -> None:
 
 def _toolkit(root: str, layout: str) -> list[Sequence]:
   """POT-210's and PlanarTrack's layout (annotation folder, flags, homographies)."""
-  suffix = "_gt_points.txt" if layout == "pot" else ".txt"
-  homography_suffix = "_gt_homography.txt" if layout == "pot" else "_homography.txt"
+  suffix, homography_suffix = _ANNOTATION_SUFFIXES[layout]
   folder = next((os.path.join(root, *parts) for parts in (("annotation", "annotation"),
                                                           ("annotation",), ("annos",))
                  if os.path.isdir(os.path.join(root, *parts))), None)
@@ -428,9 +430,9 @@ def write(root, layout: str, name: str, frames: Iterable, corners, *, excluded=N
     raise ValueError(f"{count} frames but {len(corners)} rows of corners")
   if layout in ("pot", "planartrack"):
     stem = os.path.join(annotation, name)
-    write_points(stem + ("_gt_points.txt" if layout == "pot" else ".txt"), corners)
-    write_homographies(stem + ("_gt_homography.txt" if layout == "pot" else "_homography.txt"),
-                       frame_homographies(corners))
+    points_suffix, homography_suffix = _ANNOTATION_SUFFIXES[layout]
+    write_points(stem + points_suffix, corners)
+    write_homographies(stem + homography_suffix, frame_homographies(corners))
     flags = np.zeros(len(corners), bool) if excluded is None else np.asarray(excluded, bool)
     with open(stem + "_flag.txt", "w") as handle:
       handle.writelines(f"{int(f)}\n" for f in flags)

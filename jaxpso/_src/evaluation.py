@@ -32,6 +32,7 @@ import numpy as np
 
 from jaxpso._src import baselines
 from jaxpso._src import datasets
+from jaxpso._src import results
 from jaxpso._src.config import TrackConfig
 
 PRECISION_PX = tuple(range(21))
@@ -83,8 +84,9 @@ def method(spec) -> Method:
 
 
 def alignment_errors(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
-  """(T,) √(Σ‖cᵢ − ĉᵢ‖² / 4) of (T, 4, 2) true and estimated corners."""
-  return np.sqrt(np.sum((truth - estimate) ** 2, axis=(1, 2)) / 4)
+  """(T,) √(Σ‖cᵢ − ĉᵢ‖² / 4) of (T, 4, 2) true and estimated corners, +inf where one is not
+  finite (`results.corner_errors`)."""
+  return results.corner_errors(estimate, truth)
 
 
 def homography_discrepancies(truth: np.ndarray, estimate: np.ndarray) -> np.ndarray:
@@ -208,9 +210,7 @@ def _scored(entry: Method, sequence: datasets.Sequence, run: dict, key: int) -> 
   `_run`'s, with the (T, 3, 3) `datasets.frame_homographies` of its corners."""
   corners = run["corners"]
   used = used_frames(sequence)
-  with np.errstate(invalid="ignore"):
-    align = alignment_errors(sequence.corners, corners)
-  align[~np.isfinite(align)] = math.inf
+  align = alignment_errors(sequence.corners, corners)
   return {"sequence": sequence.name, "method": entry.name, "config": _setup(entry, key),
           "frames": len(sequence),
           "attributes": list(sequence.attributes), "seconds": run["seconds"],
