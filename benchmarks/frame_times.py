@@ -58,17 +58,11 @@ def main() -> None:
   args = parser.parse_args()
   rows = []
   n = args.frames
-  seq = jaxpso.synthetic.make_sequence(0, num_frames=n, jumps=(n // 3, 2 * n // 3),
-                                       gain_drift=0.1, noise=0.01)
+  seq = tracking.sequence(0, n)
   for name, (fields, tilt) in tracking.CASES.items():
-    extra = {}
-    if tilt is not None:
-      angle = np.deg2rad(tilt)
-      tilted = np.array([np.sin(angle), 0.0, np.cos(angle)])
-      extra = dict(camera=seq.camera, plane_normal=tracking.rotate_towards(seq.normal, tilted))
-    frames = np.asarray(seq.frames)
-    rows.append(_row("tracking.py", name, frame_seconds(frames, seq.roi,
-                                                        jaxpso.TrackConfig(**fields), **extra)))
+    rows.append(_row("tracking.py", name, frame_seconds(
+        np.asarray(seq.frames), seq.roi, jaxpso.TrackConfig(**fields),
+        **tracking.plane_arguments(seq, tilt))))
   for seed, clip in enumerate(video.SIDES):
     frames, _, box = video.make_clip(clip, args.video_frames, seed)
     for stride in video.STRIDES:

@@ -40,15 +40,10 @@ def main():
   rows = []
   for seed in (int(s) for s in args.seeds.split(",")):
     n = args.frames
-    seq = jaxpso.synthetic.make_sequence(seed, num_frames=n, jumps=(n // 3, 2 * n // 3),
-                                         gain_drift=0.1, noise=0.01)
+    seq = sequence(seed, n)
     for name, (fields, tilt) in CASES.items():
       config = jaxpso.TrackConfig(**fields)
-      extra = {}
-      if tilt is not None:
-        angle = np.deg2rad(tilt)
-        tilted = np.array([np.sin(angle), 0.0, np.cos(angle)])
-        extra = dict(camera=seq.camera, plane_normal=rotate_towards(seq.normal, tilted))
+      extra = plane_arguments(seq, tilt)
       jaxpso.track(seq.frames[:2], seq.roi, config=config, **extra)  # compile
       start = time.perf_counter()
       result = jaxpso.track(seq.frames, seq.roi, config=config, key=seed, **extra)
@@ -83,6 +78,23 @@ def main():
                  f" {r['recovered']} | {r['tracked_but_off']}/{r['tracked']} |"
                  f" {r['good_but_lost']}/{r['good']} | {r['ms_per_frame']:.0f} |")
   common.write("tracking", {"machine": info, "rows": rows}, "\n".join(lines) + "\n")
+
+
+def sequence(seed: int, frames: int):
+  """The benchmark's synthetic sequence: jumps at 1/3 and 2/3, gain drift 0.1, noise 0.01."""
+  return jaxpso.synthetic.make_sequence(seed, num_frames=frames,
+                                        jumps=(frames // 3, 2 * frames // 3), gain_drift=0.1,
+                                        noise=0.01)
+
+
+def plane_arguments(seq, tilt) -> dict:
+  """`track`'s camera and plane normal for a case whose normal is `tilt` degrees off (None:
+  a case without them)."""
+  if tilt is None:
+    return {}
+  angle = np.deg2rad(tilt)
+  tilted = np.array([np.sin(angle), 0.0, np.cos(angle)])
+  return dict(camera=seq.camera, plane_normal=rotate_towards(seq.normal, tilted))
 
 
 def rotate_towards(normal, tilted):
