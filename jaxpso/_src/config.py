@@ -100,7 +100,9 @@ class TrackConfig:
       this; None always runs the swarm.  `track` also accepts a start within
       0.02 of the quality of the region's last searched match (if that was
       ≥ 0.8): noise and blur lower the right alignment's quality too, and the
-      swarm should not run on every frame for it.  `align` refines a start
+      swarm should not run on every frame for it; but a start that moved
+      more than 8 px to a quality under that 0.02 margin waits for the
+      coarser refinement below to agree.  `align` refines a start
       that falls short once more from the coarsest level before it runs the
       swarm, and accepts it where both refinements agree within 1 px on a
       quality of at least 0.8 (under image noise the right alignment's

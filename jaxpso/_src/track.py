@@ -6,7 +6,8 @@ frame is one call of one compiled program (`_frame_step`) on the frame's
 pyramid (built on the host, `jaxpso._src.atlas`): a start chosen between the
 damped constant-velocity prediction and the previous estimate, then the stages of
 `jaxpso._src.register` (Gauss–Newton from the start; when that falls short
-of `TrackConfig.accept_quality`, once more from the coarsest level, then a
+of `TrackConfig.accept_quality`, or moved far to a quality under the one the
+region had, once more from the coarsest level, then a
 quick swarm and Gauss–Newton from its best, and where that is neither
 accepted nor confirmed by both refinements of the start the full swarm;
 when the quality stays under `TrackConfig.lost_threshold`, a recovery
