@@ -134,12 +134,14 @@ class TrackConfig:
       the lowest loss.  Two independent searches that agree confirm a
       result whatever the image noise; where they disagree at least one is
       wrong.  0 is the single retry.
-    redetect (bool): `track` runs `jaxpso.detect` (the template searched in
-      the whole frame at any rotation and a scale of 0.5–2×) on every frame
-      it would report LOST, and takes the detection as RECOVERED where its
-      quality reaches `lost_threshold`; the next frames continue from it.
-      Off: a lost region keeps its last good estimate until the recovery
-      search around it finds the target again.
+    redetect (bool): on every frame `track` would report LOST it registers
+      the region's visible part, then (a region moving fast) its template
+      smeared along its motion, then runs `jaxpso.detect` (the template
+      searched in the whole frame at any rotation and a scale of 0.5–2×);
+      a match whose quality reaches `lost_threshold` is TRACKED (a
+      detection RECOVERED) and the next frames continue from it.  Off: a
+      lost region keeps its last good estimate until the recovery search
+      around it finds the target again.
     max_evaluations (int or None): the budget of one `align` call, or of
       one region's frame in `track`, in similarity evaluations (particles ×
       iterations plus refinement steps, `AlignResult.num_evaluations`): the

@@ -15,7 +15,8 @@ search around the last good estimate: wider swarms over the template's
 translation, then Gauss–Newton), each only for the regions that need it.
 A frame whose quality stays low is LOST: the program keeps the last good
 estimate and resets the motion prediction; on the host the region is then
-registered from its visible part or found again by `detect`, else its
+registered from its visible part, or (moving fast) with its template
+smeared along its motion (`blur`), or found again by `detect`, else its
 estimate coasts on its last motion (`TrackConfig.redetect`, `coast`).  For
 motion "plane" the camera pose is
 accumulated, T̂ ← T(x) · T̂.  With a gradient baseline
@@ -38,6 +39,7 @@ import numpy as np
 from jaxpso._src import atlas
 from jaxpso._src import baselines
 from jaxpso._src import batching
+from jaxpso._src import blur
 from jaxpso._src import checks
 from jaxpso._src import detect as detection
 from jaxpso._src import visible as visibility
@@ -282,6 +284,13 @@ def _corner_distance(a, b, shape) -> float:
   return float(np.sqrt(np.mean(np.sum((pa[:2] / pa[2] - pb[:2] / pb[2]) ** 2, axis=0))))
 
 
+def _inside_share(h, shape, frame_shape) -> float:
+  """The share of a template of `shape` (h, w) that the (3, 3) homography h puts inside a frame
+  of `frame_shape` (H, W)."""
+  return float(homography.inside_share(jnp.asarray(h, jnp.float32), jnp.asarray(shape, jnp.float32),
+                                       jnp.asarray(frame_shape[::-1], jnp.float32)))
+
+
 def _pose(h: np.ndarray, geometry, r: int) -> np.ndarray:
   """Region r's estimate for the (3, 3) homography h: h itself, or for motion "plane" the pose of
   its frame-0 → frame homography."""
@@ -314,9 +323,11 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   less than `_MIN_IN_FRAME` inside the frame; `before` is the carry before
   the step.  The visible part (`visible.register_part`, from the step's
   estimate) counts where its quality reaches `TrackConfig.lost_threshold`
-  and it lies within reach of the step's match or of the motion (TRACKED), else a
-  detection that reaches it (RECOVERED; the next frame starts from it with
-  no motion).  On the host: it runs only for the regions in `check`; with
+  and it lies within reach of the step's match or of the motion (TRACKED), else,
+  on the same terms, the template smeared along the region's motion
+  (`blur.register_blurred`; a region moving at least `blur.MIN_MOTION_PX` a frame,
+  at least `blur.MIN_INSIDE` inside), else a detection that reaches it
+  (RECOVERED; the next frame starts from it with no motion).  On the host: it runs only for the regions in `check`; with
   `TrackConfig.redetect` off only the coasting.
   """
   either_sign = config.similarity == "mi"
@@ -342,6 +353,15 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
              <= _PART_REACH_PX)):
       found[r] = part, TrackStatus.TRACKED
       continue
+    if (recent.speed(r, shape) >= blur.MIN_MOTION_PX
+        and _inside_share(start, shape, images[r].shape) >= blur.MIN_INSIDE):
+      smeared = blur.register_blurred(images[r], templates_[r], start, recent.motion(r), bounded,
+                                      index)
+      share = _inside_share(smeared.homography, shape, images[r].shape)
+      if (float(smeared.quality) >= config.lost_threshold and share >= blur.MIN_INSIDE
+          and _corner_distance(smeared.homography, recent.homography[r], shape) <= reach):
+        found[r], shares[r] = (smeared, TrackStatus.TRACKED), share
+        continue
     whole = detection.detect(images[r], templates_[r], config=config, key=index)
     if float(whole.quality) >= config.lost_threshold:
       found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
