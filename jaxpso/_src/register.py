@@ -255,6 +255,13 @@ def _starts(state: State, found: problems.Candidate, contexts: problems.Context,
   return merged, start, coarse_next
 
 
+def _agrees(first: problems.Candidate, second: problems.Candidate,
+            contexts: problems.Context) -> jax.Array:
+  """(C,) bool: the two candidates' homographies agree within _AGREE_PX (`corner_gap`)."""
+  return jax.vmap(corner_gap)(first.homography, second.homography,
+                              contexts.template.size) <= _AGREE_PX
+
+
 def _seen_and_votes(state: State, found: problems.Candidate, best: problems.Candidate,
                     contexts: problems.Context) -> tuple:
   """(seen, num_seen, votes (C,) int32): `found` recorded, and how many of the recorded
@@ -278,8 +285,7 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
   stage, done = state.stage, len(ALIGN)
   starting = stage <= _COARSER
   merged, start, coarse_next = _starts(state, found, contexts, knobs)
-  gap = jax.vmap(corner_gap)(found.homography, state.best.homography, contexts.template.size)
-  agree = gap <= _AGREE_PX
+  agree = _agrees(found, state.best, contexts)
   # The coarser start confirms the start where both refinements agree on a
   # match of at least _MIN_REFERENCE (noise lowers a right alignment's
   # quality under accept_quality, and the swarm would run for nothing).
@@ -335,8 +341,7 @@ def _advance_track(state: State, found: problems.Candidate, contexts: problems.C
   # 0.99; the coarser start found 0.975 at 0.8 px).
   far = ((jnp.max(jnp.abs(start.u), axis=-1) > _NEAR_PX) & ~steady
          & (reference >= _MIN_REFERENCE))
-  agree = jax.vmap(corner_gap)(found.homography, state.best.homography,
-                               contexts.template.size) <= _AGREE_PX
+  agree = _agrees(found, state.best, contexts)
   accepted = accepted & ~((stage <= _T_COARSER) & far & ~((stage == _T_COARSER) & agree))
   # The quick search settles a frame as align's searches do (`_VOTES`), if
   # the match is not lost: the starts' two refinements and the quick search

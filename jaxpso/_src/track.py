@@ -323,11 +323,12 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   less than `_MIN_IN_FRAME` inside the frame; `before` is the carry before
   the step.  The visible part (`visible.register_part`, from the step's
   estimate) counts where its quality reaches `TrackConfig.lost_threshold`
-  and it lies within reach of the step's match or of the motion (TRACKED), else,
-  on the same terms, the template smeared along the region's motion
-  (`blur.register_blurred`; a region moving at least `blur.MIN_MOTION_PX` a frame,
-  at least `blur.MIN_INSIDE` inside), else a detection that reaches it
-  (RECOVERED; the next frame starts from it with no motion).  On the host: it runs only for the regions in `check`; with
+  and it lies within reach of the step's match or of the motion (TRACKED);
+  else, on the same terms, the template smeared along the region's motion
+  (`blur.register_blurred`: a region moving at least `blur.MIN_MOTION_PX` a
+  frame and at least `blur.MIN_INSIDE` inside); else a detection that
+  reaches it (RECOVERED; the next frame starts from it with no motion).  On
+  the host: it runs only for the regions in `check`; with
   `TrackConfig.redetect` off only the coasting.
   """
   either_sign = config.similarity == "mi"
