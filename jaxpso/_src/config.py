@@ -137,9 +137,11 @@ class TrackConfig:
     redetect (bool): on every frame `track` would report LOST it registers
       the region's visible part, then (a region moving fast) its template
       smeared along its motion, then runs `jaxpso.detect` (the template
-      searched in the whole frame at any rotation and a scale of 0.5–2×);
-      a match whose quality reaches `lost_threshold` is TRACKED (a
-      detection RECOVERED) and the next frames continue from it.  Off: a
+      searched in the whole frame at any rotation and a scale of 0.5–2×,
+      `motion_blur` on); a match whose quality reaches `lost_threshold` is
+      TRACKED (a detection RECOVERED) and the next frames continue from
+      it; a detection well under the region's best quality is challenged
+      by `detect` on the next frames.  Off: a
       lost region keeps its last good estimate until the recovery search
       around it finds the target again.
     max_evaluations (int or None): the budget of one `align` call, or of

@@ -24,6 +24,7 @@ import math
 
 import numpy as np
 
+from jaxpso._src import blur
 from jaxpso._src import checks
 from jaxpso._src.align import AlignResult
 from jaxpso._src.align import align
@@ -48,6 +49,8 @@ _REFINE_LEVELS, _REFINE_PX = 2, 3
 # (benchmarks/results/detection.md: 96 % within 2 px with the coarse ranking,
 # 98 % with this one).
 _RERANK = 16
+SCALES, ANGLES, CANDIDATES = (0.5, 2.0), (-180.0, 180.0), 4
+"""`detect`'s default scale range, rotation range (degrees) and candidate places refined."""
 # With mutual information the image may be inverted (MI matches it):
 # peaks of negative correlation count too.  NCC and SSD cannot match it.
 _EITHER_SIGN = {"mi": True, "ncc": False, "ssd": False}
@@ -200,7 +203,8 @@ def bounded(config: TrackConfig) -> TrackConfig:
 
 
 def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
-           scales=(0.5, 2.0), angles=(-180.0, 180.0), candidates_tried: int = 4) -> AlignResult:
+           scales=SCALES, angles=ANGLES, candidates_tried: int = CANDIDATES,
+           motion_blur: bool = False) -> AlignResult:
   """Finds `template` anywhere in `image`, with no start.
 
   The template may appear at any position, rotated in-plane within
@@ -217,6 +221,9 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
     scales: (low, high) > 0: the template's size in the image relative to its own.
     angles: (low, high) in-plane rotation in degrees (at most a full turn).
     candidates_tried: how many candidate places `align` refines at most.
+    motion_blur: a candidate short of `accept_quality` is aligned again with
+      the template smeared by the line of motion blur fitted to the image
+      there (`blur.register_fitted`), and the better of the two counts.
 
   Returns:
     `AlignResult` of the best candidate (highest quality); its status is
@@ -239,13 +246,30 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
   if angles[1] - angles[0] > 360.0:
     raise ValueError(f"angles must span at most 360 degrees, got {angles!r}")
   checks.check_int(candidates_tried, "candidates_tried", 1)
-  starts = candidates(picture, patch, scales, angles, candidates_tried,
-                      _EITHER_SIGN[config.similarity])
+  if not isinstance(motion_blur, bool):
+    raise ValueError(f"motion_blur must be a bool, got {motion_blur!r}")
+  return search(picture, patch, config, key, scales, angles, candidates_tried,
+                -math.inf if motion_blur else None)
+
+
+def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, scales, angles,
+           candidates_tried: int, blurred_from: float | None) -> AlignResult:
+  """`detect` on checked input: picture (H, W) and patch (h, w) float32 grey; `blurred_from`:
+  a candidate's smeared alignment (`blur.register_fitted`) counts where its quality reaches
+  this, None: none is tried."""
+  either_sign = _EITHER_SIGN[config.similarity]
+  starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign)
   quick = bounded(config)
   accept = math.inf if config.accept_quality is None else config.accept_quality
   best = None
   for start in starts:
     found = align(picture, patch, start, config=quick, key=key)
+    if blurred_from is not None and float(found.quality) < accept:
+      smeared = blur.register_fitted(picture, patch, np.asarray(found.homography), quick, key,
+                                     either_sign)
+      if (smeared is not None and float(smeared.quality) > float(found.quality)
+          and float(smeared.quality) >= blurred_from):
+        found = smeared
     if best is None or float(found.quality) > float(best.quality):
       best = found
     if float(found.quality) >= accept:

@@ -40,6 +40,12 @@ MIN_VISIBLE = 0.25
 _MIN_PART = 0.15
 # The visible part's shorter side at least (a template of 3 pyramid levels).
 _MIN_SIDE = 16
+# Blocks are judged visible where the estimate is within about 2 px; a
+# start this far off is first moved by the shift of best correlation
+# (`recentred`): coasting on through a pan that stopped put a brick poster
+# half out of the frame 3 px off, where no block matched (challenges.py,
+# seed 1, out of view, MI).
+_SHIFT_PX = 8
 
 
 def blocks(frame: np.ndarray, template: np.ndarray, h: np.ndarray,
@@ -58,14 +64,19 @@ def blocks(frame: np.ndarray, template: np.ndarray, h: np.ndarray,
   smooth = [cv2.GaussianBlur(a, (0, 0), _SMOOTHING_PX) for a in (back, template)]
   visible = np.zeros((GRID, GRID), bool)
   for i, j in itertools.product(range(GRID), repeat=2):
-    window = (slice(i * rows // GRID, (i + 1) * rows // GRID),
-              slice(j * cols // GRID, (j + 1) * cols // GRID))
+    window = _window(i, j, rows, cols)
     a, b = (s[window] - s[window].mean() for s in smooth)
     spread = np.sqrt(np.sum(a * a) * np.sum(b * b))
     ncc = np.sum(a * b) / spread if spread > 1e-12 else 0.0
     ncc = abs(ncc) if either_sign else ncc
     visible[i, j] = inside[window].mean() >= _IN_FRAME and ncc >= _BLOCK_NCC
   return visible
+
+
+def _window(i: int, j: int, rows: int, cols: int) -> tuple[slice, slice]:
+  """Block (i, j)'s rows and columns in a template of (rows, cols) pixels."""
+  return (slice(i * rows // GRID, (i + 1) * rows // GRID),
+          slice(j * cols // GRID, (j + 1) * cols // GRID))
 
 
 def largest_rectangle(visible: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -87,15 +98,58 @@ def largest_rectangle(visible: np.ndarray) -> tuple[int, int, int, int] | None:
   return best
 
 
+def recentred(frame: np.ndarray, template: np.ndarray, h: np.ndarray,
+              either_sign: bool) -> np.ndarray:
+  """(3, 3) h moved by the template shift, within `_SHIFT_PX`, at which the template's part
+  inside the frame correlates best with the frame (h itself where too little is inside).
+
+  frame (H, W), template (h, w): float32 grey; h (3, 3) template → frame.
+  """
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  rows, cols = template.shape
+  pad = _SHIFT_PX
+  around = np.array([[1.0, 0, -pad], [0, 1, -pad], [0, 0, 1]])
+  size = (cols + 2 * pad, rows + 2 * pad)
+  flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+  back = cv2.warpPerspective(frame, h @ around, size, flags=flags)
+  inside = cv2.warpPerspective(np.ones_like(frame), h @ around, size, flags=flags) > 0.999
+  # Template pixels whose every shifted copy stays inside the frame.
+  ok = cv2.erode(inside.astype(np.uint8), np.ones((2 * pad + 1, 2 * pad + 1), np.uint8))
+  ok = ok[pad:pad + rows, pad:pad + cols].astype(bool)
+  grid = np.array([[ok[_window(i, j, rows, cols)].all() for j in range(GRID)]
+                   for i in range(GRID)])
+  rectangle = largest_rectangle(grid)
+  if rectangle is None:
+    return h
+  r0, r1, c0, c1 = rectangle
+  y0, y1, x0, x1 = r0 * rows // GRID, r1 * rows // GRID, c0 * cols // GRID, c1 * cols // GRID
+  if min(y1 - y0, x1 - x0) < _MIN_SIDE:
+    return h
+  part = template[y0:y1, x0:x1]
+  window = back[y0:y1 + 2 * pad, x0:x1 + 2 * pad]
+  scores = cv2.matchTemplate(window, part, cv2.TM_CCOEFF_NORMED)
+  scores = np.nan_to_num(np.abs(scores) if either_sign else scores, nan=-1.0)
+  dy, dx = np.unravel_index(int(np.argmax(scores)), scores.shape)
+  return h @ np.array([[1.0, 0, dx - pad], [0, 1, dy - pad], [0, 0, 1]])
+
+
 def register_part(frame: np.ndarray, template: np.ndarray, h: np.ndarray, config, key,
                   either_sign: bool):
   """(`AlignResult` of the whole template's homography, visible share) from the visible part,
   or (None, visible share) where less than `MIN_VISIBLE` of the region is visible (or its
   largest visible rectangle is less than `_MIN_PART` of it).
 
-  frame (H, W), template (h, w) float32 grey; h (3, 3) the estimate.
+  frame (H, W), template (h, w) float32 grey; h (3, 3) the estimate.  The
+  blocks are judged at h or at h `recentred`, whichever shows more of them.
   """
+  h = np.asarray(h, np.float64)
   visible = blocks(frame, template, h, either_sign)
+  moved = recentred(frame, template, h, either_sign)
+  if not np.array_equal(moved, h):
+    seen = blocks(frame, template, moved, either_sign)
+    if seen.sum() > visible.sum():
+      h, visible = moved, seen
   share = float(visible.mean())
   rectangle = largest_rectangle(visible)
   if rectangle is None or share < MIN_VISIBLE:

@@ -1,0 +1,52 @@
+"""The visible part of a region (`jaxpso._src.visible`): blocks, their rectangle, registration."""
+
+import cv2
+import numpy as np
+import pytest
+
+import jaxpso
+from jaxpso._src import detect
+from jaxpso._src import visible
+
+
+def test_largest_rectangle_allows_a_hole_but_not_a_missing_column():
+  grid = np.zeros((visible.GRID, visible.GRID), bool)
+  grid[2:8, 0:4] = True
+  grid[4, 2] = False  # one hole in 24 blocks: within _FILLED
+  assert visible.largest_rectangle(grid) == (2, 8, 0, 4)
+  assert visible.largest_rectangle(np.zeros_like(grid)) is None
+
+
+def _half_out():
+  """A (200, 240) frame showing the left half of a brick region whose template is (120, 120),
+  placed with its top-left corner at (-60, 40), and that template."""
+  texture = cv2.resize(np.asarray(jaxpso.data.load_image("brick"), np.float32), None, fx=0.5,
+                       fy=0.5, interpolation=cv2.INTER_AREA)
+  template = texture[60:180, 40:160].copy()
+  frame = texture[20:220, 100:340].copy()  # the template's (x, y) = frame's (x - 60, y + 40)
+  noise = np.random.default_rng(0).normal(0, 0.01, frame.shape)
+  return np.clip(frame + noise, 0, 1).astype(np.float32), template
+
+
+@pytest.mark.parametrize("similarity", ["mi", "ncc"])
+def test_a_start_a_few_pixels_off_is_recentred_before_the_blocks_are_judged(similarity):
+  # Half of a fine brick region out of the frame, the start 3.5 px off (a
+  # pan that stopped, coasted on): at the start no block of the visible half
+  # correlates at _BLOCK_NCC; moved by the best shift first, the half is
+  # seen and registered (measured 0.1 px off).
+  frame, template = _half_out()
+  truth = np.array([[1.0, 0, -60], [0, 1, 40], [0, 0, 1]])
+  start = truth @ np.array([[1.0, 0, 3.0], [0, 1, -2.0], [0, 0, 1]])
+  either_sign = similarity == "mi"
+  assert visible.blocks(frame, template, start, either_sign).sum() == 0  # 27 of 64 at the truth
+  moved = visible.recentred(frame, template, start, either_sign)
+  np.testing.assert_allclose(moved, truth, atol=1e-9)
+  config = detect.bounded(jaxpso.TrackConfig(similarity=similarity))
+  part, share = visible.register_part(frame, template, start, config, 0, either_sign)
+  assert 0.4 <= share <= 0.5, share  # the half inside the frame, less its rim
+  corners = np.c_[[[0, 0], [119, 0], [119, 119], [0, 119]], np.ones(4)]
+  found = corners @ np.asarray(part.homography, np.float64).T
+  true = corners @ truth.T[:, :2]
+  error = np.sqrt(np.mean(np.sum((found[:, :2] / found[:, 2:] - true) ** 2, -1)))
+  assert error < 0.2, error
+  assert float(part.quality) >= jaxpso.TrackConfig(similarity=similarity).lost_threshold
