@@ -79,7 +79,7 @@ def test_fit_line_finds_the_blur_of_a_frame_at_the_template():
   # The grid's nearest line (8 px at 30°), sign free: a line has no direction.
   np.testing.assert_allclose(np.abs(fitted), [8 * np.cos(np.pi / 6), 8 * np.sin(np.pi / 6)],
                              atol=1e-6)
-  assert score > 0.97, score  # measured 0.975
+  assert score > 0.99, score  # measured 0.994 (at half resolution)
   sharp, sharp_score = blur.fit_line(template, template, np.eye(3), either_sign=False)
   np.testing.assert_array_equal(sharp, [0.0, 0.0])
   outside = np.array([[1.0, 0, 300], [0, 1, 200], [0, 0, 1]])  # a sliver inside the frame

@@ -338,7 +338,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   and it lies within reach of the step's match or of the motion (TRACKED);
   else, on the same terms, the template smeared along the region's motion
   (`blur.register_blurred`: a region moving at least `blur.MIN_MOTION_PX` a
-  frame and at least `blur.MIN_INSIDE` inside); else a detection that
+  frame, at least `blur.MIN_INSIDE` inside, LOST for at most `blur.MAX_GAP`
+  frames); else a detection that
   reaches it (RECOVERED; the next frame starts from it with no motion).  A
   region in `doubt` ({region: (last frame, its `peak`)}, changed in place)
   not LOST is first challenged by a detection (`_DOUBT_MARGIN`); `peak` (R,)
@@ -378,7 +379,7 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
              <= _PART_REACH_PX)):
       found[r] = part, TrackStatus.TRACKED
       continue
-    if (recent.speed(r, shape) >= blur.MIN_MOTION_PX
+    if (recent.speed(r, shape) >= blur.MIN_MOTION_PX and recent.gap[r] <= blur.MAX_GAP
         and _inside_share(start, shape, images[r].shape) >= blur.MIN_INSIDE):
       smeared = blur.register_blurred(images[r], templates_[r], start, recent.motion(r), bounded,
                                       index)
