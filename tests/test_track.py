@@ -9,6 +9,7 @@ tracked once per test run by `_tracked`.
 
 import dataclasses
 import functools
+import gc
 import itertools
 import os
 
@@ -223,6 +224,28 @@ def test_same_key_is_bit_identical_and_iterables_match_arrays(capsys):
   accepted = reference.num_evaluations < HOMOGRAPHY["mi"].swarm_size
   assert accepted[1:].any()
   np.testing.assert_array_equal(other_key.homographies[accepted], reference.homographies[accepted])
+
+
+def test_the_garbage_collector_skips_the_callers_objects_while_tracking():
+  # `track._collector_frozen`: a full collection among JAX's objects paused a
+  # frame 26x its sequence's median (benchmarks/frame_times.py).
+  sequence = _sequence("default")
+  seen = []
+
+  def frames():
+    for frame in sequence.frames:
+      seen.append(gc.get_freeze_count())
+      yield frame
+
+  jaxpso.track(frames(), sequence.roi, config=HOMOGRAPHY["mi"], key=0)
+  assert seen[0] == 0 and min(seen[1:]) > 0
+  assert gc.get_freeze_count() == 0
+  gc.freeze()  # the caller's own freeze is left as it is
+  try:
+    jaxpso.track(sequence.frames, sequence.roi, config=HOMOGRAPHY["mi"], key=0)
+    assert gc.get_freeze_count() > 0
+  finally:
+    gc.unfreeze()
 
 
 def test_one_trace_per_config_and_no_retrace_for_new_frames():

@@ -26,9 +26,11 @@ Neither the frame size nor the regions' sizes enter the compiled program.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import enum
 import functools
+import gc
 import sys
 from typing import NamedTuple
 
@@ -469,6 +471,25 @@ def _starts(regions: list) -> np.ndarray:
   return homography.host_homography_from_corners(rects, corners).astype(np.float32)
 
 
+@contextlib.contextmanager
+def _collector_frozen():
+  """Python's cyclic garbage collector leaves the objects that exist on entry out of its
+  collections until exit (`gc.freeze`), unless the caller froze some itself.
+
+  A full collection among the objects JAX keeps paused a frame for 64 ms,
+  26x the sequence's median (benchmarks/frame_times.py, tracking.py's plane
+  case, frame 32; 2026-11-27); the frames' own garbage is still collected.
+  """
+  mine = gc.get_freeze_count() == 0
+  if mine:
+    gc.freeze()
+  try:
+    yield
+  finally:
+    if mine:
+      gc.unfreeze()
+
+
 def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=None,
           plane_normal=None, sequences: bool = False, devices=None,
           progress: bool = False) -> TrackResult:
@@ -622,33 +643,34 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
   # is built: the host builds it while the device runs the step (waiting for
   # each step's status first cost 15-30 % of the time per frame); the host's
   # record of the motion follows once the next step is running.
-  pending = None
-  for index, raw in enumerate(iterator, start=1):
-    images = [np.asarray(checks.to_gray(f, frame_name(r, index))) for r, f in enumerate(raw)]
-    for r, image in enumerate(images):
-      if image.shape != frame_shape:
-        raise ValueError(f"{frame_name(r, index)} has shape {image.shape}, frame 0 has"
-                         f" {frame_shape}: all frames must have one size")
-    if sequences:
-      image = sharding.split(batching.stack([atlas.build(i, levels, capacity) for i in images]),
-                             mesh)
-    else:
-      image = sharding.replicate(atlas.build(images[0], levels, capacity), mesh)
-    if pending is not None:
-      carry, out = settled(carry, pending)
-      outputs.append(out)
-    before = carry
-    carry, step_out = _frame_step(carry, image, constants, knobs, config=statics, mesh=mesh)
-    if pending is not None and reacquire:
-      host = sharding.to_host({k: out[k] for k in ("status", "homography")})
-      recent = _moved(recent, host["homography"][:count], host["status"][:count])
-    pending = step_out, images, index, before
-    if len(outputs) == _HOST_CHUNK:
-      chunks.append(_to_host(outputs))
-      outputs = []
-    if progress:
-      of = f"/{total}" if total else ""
-      print(f"\rtracking: frame {index + 1}{of}", end="", file=sys.stderr, flush=True)
+  with _collector_frozen():
+    pending = None
+    for index, raw in enumerate(iterator, start=1):
+      images = [np.asarray(checks.to_gray(f, frame_name(r, index))) for r, f in enumerate(raw)]
+      for r, image in enumerate(images):
+        if image.shape != frame_shape:
+          raise ValueError(f"{frame_name(r, index)} has shape {image.shape}, frame 0 has"
+                           f" {frame_shape}: all frames must have one size")
+      if sequences:
+        image = sharding.split(batching.stack([atlas.build(i, levels, capacity) for i in images]),
+                               mesh)
+      else:
+        image = sharding.replicate(atlas.build(images[0], levels, capacity), mesh)
+      if pending is not None:
+        carry, out = settled(carry, pending)
+        outputs.append(out)
+      before = carry
+      carry, step_out = _frame_step(carry, image, constants, knobs, config=statics, mesh=mesh)
+      if pending is not None and reacquire:
+        host = sharding.to_host({k: out[k] for k in ("status", "homography")})
+        recent = _moved(recent, host["homography"][:count], host["status"][:count])
+      pending = step_out, images, index, before
+      if len(outputs) == _HOST_CHUNK:
+        chunks.append(_to_host(outputs))
+        outputs = []
+      if progress:
+        of = f"/{total}" if total else ""
+        print(f"\rtracking: frame {index + 1}{of}", end="", file=sys.stderr, flush=True)
   if pending is not None:
     outputs.append(settled(carry, pending)[1])
   if progress:
