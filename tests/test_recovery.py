@@ -104,7 +104,7 @@ def test_a_look_alike_detected_in_doubt_gives_way_to_the_target(similarity, repl
   # While the region is hidden (frames 3-6) `detect` finds its look-alike
   # (NCC 0.88, MI 0.72-0.85 against 0.98-1.0 for the region), which is
   # tracked there; the region back in view at frame 7, the detection in
-  # doubt (`track._DOUBT_MARGIN`) runs again and finds it.  Without it the
+  # doubt (`track._margin`) runs again and finds it.  Without it the
   # estimate stayed on the look-alike, 174 px off, to the end.
   frames = _look_alike_sequence(replaced)
   result = jaxpso.track(frames, LOOK_ALIKE_ROI, config=jaxpso.TrackConfig(similarity=similarity))

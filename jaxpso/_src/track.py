@@ -253,17 +253,19 @@ _MIN_IN_FRAME = 0.75
 # occluder's edge in it was registered 6–52 px off at a quality above the
 # lost threshold (challenges.py, occlusion).
 _PART_REACH_PX = 4.0
-# A detection whose quality falls more than _DOUBT_MARGIN short of the best
-# the region has been TRACKED at is in doubt for _DOUBT_FRAMES frames: on
-# each of them whose quality stays under that, `detect` runs again, and a
-# place _DOUBT_MARGIN better and over _PART_REACH_PX away replaces the
-# estimate.  A periodic texture half out of the frame was re-detected a
-# brick (79 px) off at NCC 0.80-0.87 and tracked there at 0.81-0.94, where
-# the truth, once in full view, scored 0.95-0.98 (challenges.py, seed 1,
-# out of view; 0.97 its best before).  A detection by the smeared template
-# (motion blur) counts only within _DOUBT_MARGIN of the region's reference:
-# smearing raised that wrong brick from 0.65-0.77 to 0.79-0.86.
-_DOUBT_MARGIN, _DOUBT_FRAMES = 0.05, 15
+# A detection whose quality falls more than a margin short of the best the
+# region has been TRACKED at is in doubt for _DOUBT_FRAMES frames: on each
+# of them whose quality stays under that, `detect` runs again, and a place
+# a margin better and over _PART_REACH_PX away replaces the estimate.  A
+# periodic texture half out of the frame was re-detected a brick (79 px) off
+# at NCC 0.80-0.87 and tracked there at 0.81-0.94, where the truth, once in
+# full view, scored 0.95-0.98 (challenges.py, seed 1, out of view; 0.97 its
+# best before).  A detection by the smeared template (motion blur) counts
+# only within a margin of the region's reference: smearing raised that
+# wrong brick from 0.65-0.77 to 0.79-0.86.  The margin is _DOUBT_SHARE of
+# the span from the lost threshold to 1 (`_margin`): NCC 0.05, MI 0.0875
+# (a shake on a brick texture, MI 0.90 before it: the smeared truth 0.84).
+_DOUBT_SHARE, _DOUBT_FRAMES = 0.25, 15
 
 
 class _Recent(NamedTuple):
@@ -344,7 +346,7 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   frames); else a detection that
   reaches it (RECOVERED; the next frame starts from it with no motion).  A
   region in `doubt` ({region: (last frame, its `peak`)}, changed in place)
-  not LOST is first challenged by a detection (`_DOUBT_MARGIN`); `peak` (R,)
+  not LOST is first challenged by a detection (`_margin`); `peak` (R,)
   holds the best quality each region was TRACKED at.  On the host: it runs
   only for the regions in `check`; with `TrackConfig.redetect` off only the
   coasting.
@@ -360,10 +362,10 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
     if not config.redetect:
       _keep_lost(carry, before, out, recent, geometry, config, r, shape)
       continue
-    smeared_from = float(before.reference[r]) - _DOUBT_MARGIN
+    smeared_from = float(before.reference[r]) - _margin(config)
     if r in doubt and out["status"][r] != TrackStatus.LOST:
       whole = _detected(images[r], templates_[r], config, index, smeared_from)
-      if (float(whole.quality) >= out["quality"][r] + _DOUBT_MARGIN
+      if (float(whole.quality) >= out["quality"][r] + _margin(config)
           and _corner_distance(whole.homography, out["homography"][r], shape) > _PART_REACH_PX):
         found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
         continue
@@ -393,7 +395,7 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
     whole = _detected(images[r], templates_[r], config, index, smeared_from)
     if float(whole.quality) >= config.lost_threshold:
       found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
-      if float(whole.quality) < peak[r] - _DOUBT_MARGIN:
+      if float(whole.quality) < peak[r] - _margin(config):
         doubt[r] = index + _DOUBT_FRAMES, float(peak[r])
     else:
       _keep_lost(carry, before, out, recent, geometry, config, r, shape)
@@ -412,6 +414,12 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
     out["num_iterations"][r] += int(f.num_iterations)
     out["num_evaluations"][r] += int(f.num_evaluations)
   return sharding.split(carry, mesh), out, shares
+
+
+def _margin(config: TrackConfig) -> float:
+  """The quality margin of a detection in doubt: `_DOUBT_SHARE` of the span from the lost
+  threshold to a perfect match."""
+  return _DOUBT_SHARE * (1.0 - config.lost_threshold)
 
 
 def _detected(image: np.ndarray, template: np.ndarray, config: TrackConfig, index: int,
@@ -624,7 +632,7 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
     if config.redetect:
       check |= host["inside"][:count] < _MIN_IN_FRAME
     for r, (last, best) in list(doubt.items()):
-      if index > last or host["quality"][r] >= best - _DOUBT_MARGIN:
+      if index > last or host["quality"][r] >= best - _margin(config):
         del doubt[r]
       else:
         check[r] = True
