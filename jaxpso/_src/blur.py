@@ -35,8 +35,8 @@ EXPOSURES = (0.5, 1.0)
 LINE_LENGTHS_PX = (2.0, 4.0, 6.0, 8.0, 10.0, 12.0, 14.0, 16.0)
 """Lengths of the lines `fit_line` tries (template pixels), at every `LINE_ANGLE_STEP`."""
 LINE_ANGLE_STEP = 15.0
-# The frame's rim of the template this many pixels wide is left out of the
-# fit: the smear there reads the reflected border.
+# The template's rim this many pixels wide is left out of the fit: the
+# smear there reads the reflected border.
 _FIT_MARGIN = 8
 # A place whose frame, both smoothed by _COARSE_SIGMA px, correlates with
 # the template under _MIN_COARSE is not fitted; one whose best line
@@ -44,7 +44,9 @@ _FIT_MARGIN = 8
 # 2026-11-27: at the truth under 6-13 px of blur the smoothed correlation
 # was 0.91-1.0 and the best line 0.95-1.0 (0.77 where a shake turned within
 # the exposure); a brick 79 px off 0.84-0.94 (seed 1); detect's candidates
-# in frames without the target, smoothed 0.1-0.8, best line up to 0.78.
+# in frames without the target, smoothed 0.1-0.8, best line up to 0.78
+# (lines at full resolution; at half resolution, as fitted here, the truth
+# 0.99-1.0).
 _COARSE_SIGMA, _MIN_COARSE, _MIN_FIT = 4.0, 0.85, 0.9
 
 
