@@ -302,8 +302,8 @@ def _corner_distance(a, b, shape) -> float:
 def _inside_share(h, shape, frame_shape) -> float:
   """The share of a template of `shape` (h, w) that the (3, 3) homography h puts inside a frame
   of `frame_shape` (H, W)."""
-  return float(homography.inside_share(jnp.asarray(h, jnp.float32), jnp.asarray(shape, jnp.float32),
-                                       jnp.asarray(frame_shape[::-1], jnp.float32)))
+  return float(homography.inside_share(h, np.asarray(shape, np.float32),
+                                       np.asarray(frame_shape[::-1], np.float32), xp=np))
 
 
 def _pose(h: np.ndarray, geometry, r: int) -> np.ndarray:
