@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxpso._src import align as aligning
+from jaxpso._src import visible
 
 MIN_MOTION_PX = 2.0
 """The region's motion between frames (RMS over its corners) from which a lost frame is tried blurred."""
@@ -72,15 +73,19 @@ def smear(template: np.ndarray, h: np.ndarray, step: np.ndarray, exposure: float
   frame to the next (frame → frame).  The blur is the template centre's
   motion over `exposure` of it, brought back into template pixels.
   """
-  import cv2  # lazily: `import jaxpso` stays free of OpenCV
-
   rows, cols = template.shape
   centre = np.array([(cols - 1) / 2, (rows - 1) / 2, 1.0])
   here = h @ centre
   moved = step @ here
   back = np.linalg.inv(h) @ np.array([moved[0] / moved[2], moved[1] / moved[2], 1.0])
-  vector = exposure * (back[:2] / back[2] - centre[:2])
-  return cv2.filter2D(template, -1, line_kernel(vector), borderType=cv2.BORDER_REFLECT)
+  return smeared_along(template, exposure * (back[:2] / back[2] - centre[:2]))
+
+
+def smeared_along(template: np.ndarray, line) -> np.ndarray:
+  """(h, w) float32 `template` convolved with `line_kernel(line)` (x, y template pixels)."""
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  return cv2.filter2D(template, -1, line_kernel(line), borderType=cv2.BORDER_REFLECT)
 
 
 def register_blurred(frame: np.ndarray, template: np.ndarray, h: np.ndarray, step: np.ndarray,
@@ -113,20 +118,15 @@ def fit_line(frame: np.ndarray, template: np.ndarray, h: np.ndarray, either_sign
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
 
   rows, cols = template.shape
-  flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-  h = np.asarray(h, np.float64)
-  back = cv2.warpPerspective(frame, h, (cols, rows), flags=flags)
-  inside = cv2.warpPerspective(np.ones_like(frame), h, (cols, rows), flags=flags) > 0.999
+  back, inside = visible.mapped_back(frame, h, (cols, rows))
+  inside = inside > 0.999
   rim = _FIT_MARGIN
   inside[:rim], inside[-rim:], inside[:, :rim], inside[:, -rim:] = False, False, False, False
   if inside.sum() < 0.25 * rows * cols:
     return np.zeros(2), -1.0
 
   def correlation(a, b, mask):
-    a, b = a[mask] - a[mask].mean(), b[mask] - b[mask].mean()
-    spread = np.sqrt(float(a @ a) * float(b @ b))
-    score = float(a @ b) / spread if spread > 1e-12 else 0.0
-    return abs(score) if either_sign else score
+    return visible.correlation(a[mask], b[mask], either_sign)
 
   # The smoothed correlation away from the frame's edge, whose zeros the smoothing spreads.
   reach = 2 * int(np.ceil(2 * _COARSE_SIGMA)) + 1
@@ -144,8 +144,7 @@ def fit_line(frame: np.ndarray, template: np.ndarray, h: np.ndarray, either_sign
                            for a in np.radians(np.arange(0.0, 180.0, LINE_ANGLE_STEP))]
   best, best_score = lines[0], -np.inf
   for line in lines:
-    smeared = cv2.filter2D(template, -1, line_kernel(line / 2), borderType=cv2.BORDER_REFLECT)
-    score = correlation(smeared, back, inside)
+    score = correlation(smeared_along(template, line / 2), back, inside)
     if score > best_score:
       best, best_score = line, score
   return best, best_score
@@ -159,10 +158,7 @@ def register_fitted(frame: np.ndarray, template: np.ndarray, h: np.ndarray, conf
 
   frame (H, W), template (h, w) float32 grey; h (3, 3) the start.
   """
-  import cv2  # lazily: `import jaxpso` stays free of OpenCV
-
   line, score = fit_line(frame, template, h, either_sign)
   if score < _MIN_FIT or not np.any(line):
     return None
-  smeared = cv2.filter2D(template, -1, line_kernel(line), borderType=cv2.BORDER_REFLECT)
-  return aligning.align(frame, smeared, h, config=config, key=key)
+  return aligning.align(frame, smeared_along(template, line), h, config=config, key=key)

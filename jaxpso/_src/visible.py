@@ -58,25 +58,49 @@ def blocks(frame: np.ndarray, template: np.ndarray, h: np.ndarray,
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
 
   rows, cols = template.shape
-  flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-  back = cv2.warpPerspective(frame, h, (cols, rows), flags=flags)
-  inside = cv2.warpPerspective(np.ones_like(frame), h, (cols, rows), flags=flags)
+  back, inside = mapped_back(frame, h, (cols, rows))
   smooth = [cv2.GaussianBlur(a, (0, 0), _SMOOTHING_PX) for a in (back, template)]
   visible = np.zeros((GRID, GRID), bool)
   for i, j in itertools.product(range(GRID), repeat=2):
     window = _window(i, j, rows, cols)
-    a, b = (s[window] - s[window].mean() for s in smooth)
-    spread = np.sqrt(np.sum(a * a) * np.sum(b * b))
-    ncc = np.sum(a * b) / spread if spread > 1e-12 else 0.0
-    ncc = abs(ncc) if either_sign else ncc
+    ncc = correlation(smooth[0][window], smooth[1][window], either_sign)
     visible[i, j] = inside[window].mean() >= _IN_FRAME and ncc >= _BLOCK_NCC
   return visible
+
+
+def mapped_back(frame: np.ndarray, h: np.ndarray, size) -> tuple[np.ndarray, np.ndarray]:
+  """((rows, cols) the frame mapped onto template pixels by h (3, 3, template → frame), (rows,
+  cols) how much of each of them lies inside the frame, 0 to 1); size (cols, rows).
+
+  frame (H, W): float32 grey.
+  """
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+  h = np.asarray(h, np.float64)
+  return (cv2.warpPerspective(frame, h, size, flags=flags),
+          cv2.warpPerspective(np.ones_like(frame), h, size, flags=flags))
+
+
+def correlation(a: np.ndarray, b: np.ndarray, either_sign: bool) -> float:
+  """The normalised cross-correlation of two arrays of one shape, 0 where either is flat; its
+  magnitude where `either_sign` (an anticorrelation counts, as mutual information's)."""
+  a, b = a - a.mean(), b - b.mean()
+  spread = np.sqrt(np.sum(a * a) * np.sum(b * b))
+  score = float(np.sum(a * b) / spread) if spread > 1e-12 else 0.0
+  return abs(score) if either_sign else score
 
 
 def _window(i: int, j: int, rows: int, cols: int) -> tuple[slice, slice]:
   """Block (i, j)'s rows and columns in a template of (rows, cols) pixels."""
   return (slice(i * rows // GRID, (i + 1) * rows // GRID),
           slice(j * cols // GRID, (j + 1) * cols // GRID))
+
+
+def _bounds(rectangle, rows: int, cols: int) -> tuple[int, int, int, int]:
+  """(y0, y1, x0, x1) template pixels of a (row0, row1, col0, col1) rectangle of blocks."""
+  r0, r1, c0, c1 = rectangle
+  return r0 * rows // GRID, r1 * rows // GRID, c0 * cols // GRID, c1 * cols // GRID
 
 
 def largest_rectangle(visible: np.ndarray) -> tuple[int, int, int, int] | None:
@@ -110,20 +134,16 @@ def recentred(frame: np.ndarray, template: np.ndarray, h: np.ndarray,
   rows, cols = template.shape
   pad = _SHIFT_PX
   around = np.array([[1.0, 0, -pad], [0, 1, -pad], [0, 0, 1]])
-  size = (cols + 2 * pad, rows + 2 * pad)
-  flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-  back = cv2.warpPerspective(frame, h @ around, size, flags=flags)
-  inside = cv2.warpPerspective(np.ones_like(frame), h @ around, size, flags=flags) > 0.999
+  back, inside = mapped_back(frame, h @ around, (cols + 2 * pad, rows + 2 * pad))
   # Template pixels whose every shifted copy stays inside the frame.
-  ok = cv2.erode(inside.astype(np.uint8), np.ones((2 * pad + 1, 2 * pad + 1), np.uint8))
+  ok = cv2.erode((inside > 0.999).astype(np.uint8), np.ones((2 * pad + 1, 2 * pad + 1), np.uint8))
   ok = ok[pad:pad + rows, pad:pad + cols].astype(bool)
   grid = np.array([[ok[_window(i, j, rows, cols)].all() for j in range(GRID)]
                    for i in range(GRID)])
   rectangle = largest_rectangle(grid)
   if rectangle is None:
     return h
-  r0, r1, c0, c1 = rectangle
-  y0, y1, x0, x1 = r0 * rows // GRID, r1 * rows // GRID, c0 * cols // GRID, c1 * cols // GRID
+  y0, y1, x0, x1 = _bounds(rectangle, rows, cols)
   if min(y1 - y0, x1 - x0) < _MIN_SIDE:
     return h
   part = template[y0:y1, x0:x1]
@@ -155,9 +175,7 @@ def register_part(frame: np.ndarray, template: np.ndarray, h: np.ndarray, config
   if rectangle is None or share < MIN_VISIBLE:
     return None, share
   rows, cols = template.shape
-  r0, r1, c0, c1 = rectangle
-  y0, y1 = r0 * rows // GRID, r1 * rows // GRID
-  x0, x1 = c0 * cols // GRID, c1 * cols // GRID
+  y0, y1, x0, x1 = _bounds(rectangle, rows, cols)
   if (y1 - y0) * (x1 - x0) < _MIN_PART * rows * cols or min(y1 - y0, x1 - x0) < _MIN_SIDE:
     return None, share
   shift = np.array([[1, 0, x0], [0, 1, y0], [0, 0, 1]], np.float64)
