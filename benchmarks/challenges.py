@@ -52,7 +52,10 @@ estimate is kept and the frame counts as lost.
 Metrics (frames 1..T−1): error = RMS of the 4 corner errors; P@5/10/20 =
 share within 5/10/20 px, and P@5 on trackable frames only; first loss =
 first frame more than 20 px off; tracked but off = frames reported tracked
-(jaxpso: status not LOST; SIFT: a homography found) more than 5 px off;
+(jaxpso: status TRACKED or RECOVERED; SIFT: a homography found) more than 5
+px off; doubtful = jaxpso's DOUBTFUL frames (a re-detection short of the
+region's best quality, and the frames tracked from it until it is confirmed
+or replaced), and how many of them are more than 5 px off;
 re-acquisition delay = for each frame where `trackable` turns true, the
 frames until the error is first within 5 px (≥ marks one never re-acquired,
 counted to the end); ms per frame = the whole method call on the sequence ÷
@@ -95,7 +98,8 @@ GRID = 16  # trajectory samples per frame
 MIP_LEVELS = 4
 TRACKABLE_VISIBLE, TRACKABLE_BLUR_PX = 0.5, 8.0
 LOSS_PX, GOOD_PX, WITHIN = 20.0, 5.0, (5.0, 10.0, 20.0)
-TRACKED, LOST = int(jaxpso.TrackStatus.TRACKED), int(jaxpso.TrackStatus.LOST)
+TRACKED, LOST, DOUBTFUL = (int(jaxpso.TrackStatus.TRACKED), int(jaxpso.TrackStatus.LOST),
+                           int(jaxpso.TrackStatus.DOUBTFUL))
 
 
 @dataclasses.dataclass
@@ -556,11 +560,12 @@ def frame_metrics(errors: np.ndarray, status: np.ndarray, trackable: np.ndarray)
   """Per-sequence counts over frames 1..T−1 (summable across sequences)."""
   e, s, ok = errors[1:], status[1:], trackable[1:]
   lost = np.flatnonzero(errors > LOSS_PX)
-  tracked = s != LOST
+  tracked, doubtful = common.tracked(s), s == DOUBTFUL
   return {"frames": int(e.size), **{f"within_{int(px)}": int(np.sum(e <= px)) for px in WITHIN},
           "trackable": int(np.sum(ok)), "trackable_within_5": int(np.sum(ok & (e <= GOOD_PX))),
           "first_loss": int(lost[0]) if lost.size else None,
           "tracked": int(np.sum(tracked)), "tracked_but_off": int(np.sum(tracked & (e > GOOD_PX))),
+          "doubtful": int(np.sum(doubtful)), "doubtful_but_off": int(np.sum(doubtful & (e > GOOD_PX))),
           "reacquisitions": _reacquisitions(errors, trackable),
           "median_error_px": float(np.median(e)) if e.size else float("nan")}
 
@@ -569,7 +574,7 @@ def pool(rows: list[dict]) -> dict:
   """Sums of frame_metrics rows (first losses listed per sequence)."""
   out = {key: sum(r[key] for r in rows) for key in
          ("frames", "within_5", "within_10", "within_20", "trackable", "trackable_within_5",
-          "tracked", "tracked_but_off")}
+          "tracked", "tracked_but_off", "doubtful", "doubtful_but_off")}
   out["first_loss"] = [r["first_loss"] for r in rows]
   out["reacquisitions"] = [d for r in rows for d in r["reacquisitions"]]
   out["seconds"] = sum(r["seconds"] for r in rows)
@@ -653,14 +658,16 @@ def markdown(summary, sequences, methods, categories, info, args) -> str:
                  f" {int(np.sum(blur[1:] > TRACKABLE_BLUR_PX))} | {visible.min():.2f} |"
                  f" {blur.max():.1f} |")
   lines += ["", "## Per category and method", "",
-            "Tracked > 5 px: frames reported tracked (jaxpso: not LOST; ECC: every frame; SIFT:"
-            " a homography found) more than 5 px off / frames reported tracked.  Re-acquisition:"
+            "Tracked > 5 px: frames reported tracked (jaxpso: TRACKED or RECOVERED; ECC: every"
+            " frame; SIFT: a homography found) more than 5 px off / frames reported tracked."
+            "  Doubtful: jaxpso's DOUBTFUL frames (a re-detection short of the region's best"
+            " quality, until confirmed or replaced), more than 5 px off / all.  Re-acquisition:"
             " frames from each return to trackable to the first frame within 5 px, max / mean"
             " (transitions; ≥: not re-acquired by the end, counted to it).  First loss: first frame"
             " more than 20 px off (– never).", "",
             "| category | method | P@5 | P@10 | P@20 | P@5 trackable | first loss | tracked > 5 px"
-            " | re-acquisition max / mean | ms/frame | warm-up s |",
-            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+            " | doubtful > 5 px | re-acquisition max / mean | ms/frame | warm-up s |",
+            "|---|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
   for category in list(categories) + [None]:
     for method in methods:
       row = summary[(method, category)]
@@ -668,7 +675,7 @@ def markdown(summary, sequences, methods, categories, info, args) -> str:
       lines.append(f"| {category or '**all**'} | {method} | {row['p_at_5']:.1f} |"
                    f" {row['p_at_10']:.1f} | {row['p_at_20']:.1f} | {_pct(row['p_at_5_trackable'])} |"
                    f" {_fmt_loss(row['first_loss'])} | {row['tracked_but_off']}/{row['tracked']} |"
-                   f" {_fmt_reacq(row['reacquisitions'])} | {row['ms_per_frame']:.1f} | {warm} |")
+                   f" {row['doubtful_but_off']}/{row['doubtful']} | {_fmt_reacq(row['reacquisitions'])} | {row['ms_per_frame']:.1f} | {warm} |")
   return "\n".join(lines) + "\n"
 
 

@@ -114,13 +114,24 @@ def corner_error(h, origin, size: int = 100) -> float:
 
 
 def status_precision(status: np.ndarray, errors: np.ndarray, good_px: float = 5.0) -> dict:
-  """Counts for the status's precision: frames not LOST but more than `good_px` off, and good ones LOST.
+  """Counts for the status's precision: frames reported tracked (TRACKED or RECOVERED) but more
+  than `good_px` off, good ones LOST, and DOUBTFUL ones (all, and more than `good_px` off).
 
   status, errors: (…) per frame (`jaxpso.TrackStatus`, corner RMS px).
   """
   import jaxpso
 
-  reported = status != jaxpso.TrackStatus.LOST
-  good = errors <= good_px
+  reported, good = tracked(status), errors <= good_px
+  doubtful = status == jaxpso.TrackStatus.DOUBTFUL
   return {"tracked_but_off": int(np.sum(reported & ~good)), "tracked": int(np.sum(reported)),
-          "good_but_lost": int(np.sum(~reported & good)), "good": int(np.sum(good))}
+          "good_but_lost": int(np.sum((status == jaxpso.TrackStatus.LOST) & good)),
+          "good": int(np.sum(good)), "doubtful": int(np.sum(doubtful)),
+          "doubtful_but_off": int(np.sum(doubtful & ~good))}
+
+
+def tracked(status: np.ndarray) -> np.ndarray:
+  """(…) bool: frames `jaxpso.track` reports as tracked, TRACKED or RECOVERED (not LOST, not
+  DOUBTFUL); status (…) `jaxpso.TrackStatus`."""
+  import jaxpso
+
+  return (status == jaxpso.TrackStatus.TRACKED) | (status == jaxpso.TrackStatus.RECOVERED)

@@ -196,7 +196,8 @@ def test_status_names_match_the_tracker():
 def test_results_csv_and_json_with_truth(tmp_path):
   result, truth = _result()
   summary = io.write_results(tmp_path / "out", result, truth_corners=truth)
-  assert summary == {"frames": 4, "status_counts": {"TRACKED": 2, "RECOVERED": 1, "LOST": 1},
+  assert summary == {"frames": 4, "status_counts": {"TRACKED": 2, "RECOVERED": 1, "LOST": 1,
+                                                     "DOUBTFUL": 0},
                      "median_score": pytest.approx(0.75), "within_5px": 0.75,
                      "median_error_px": pytest.approx(2.5), "mean_error_px": pytest.approx(3.75),
                      "max_error_px": pytest.approx(10.0)}

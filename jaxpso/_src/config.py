@@ -140,8 +140,8 @@ class TrackConfig:
       searched in the whole frame at any rotation and a scale of 0.5–2×,
       `motion_blur` on); a match whose quality reaches `lost_threshold` is
       TRACKED (a detection RECOVERED) and the next frames continue from
-      it; a detection well under the region's best quality is challenged
-      by `detect` on the next frames.  Off: a
+      it; a detection well under the region's best quality is DOUBTFUL,
+      and challenged by `detect` on the next frames.  Off: a
       lost region keeps its last good estimate until the recovery search
       around it finds the target again.
     max_evaluations (int or None): the budget of one `align` call, or of

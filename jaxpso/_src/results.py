@@ -21,8 +21,8 @@ import numpy as np
 
 from jaxpso._src.video import STATUS_COLORS
 
-STATUS_NAMES = ("TRACKED", "RECOVERED", "LOST")
-"""Names of the tracker's status codes 0, 1, 2 (`jaxpso.TrackStatus`)."""
+STATUS_NAMES = ("TRACKED", "RECOVERED", "LOST", "DOUBTFUL")
+"""Names of the tracker's status codes 0, 1, 2, 3 (`jaxpso.TrackStatus`)."""
 
 WITHIN_PX = 5.0
 """Corner error (px) under which `write_results` counts a frame as within tolerance."""
@@ -111,7 +111,7 @@ def summarize(result, *, truth_corners=None) -> dict:
 
   Returns:
     dict with "frames" (T), "status_counts" ({"TRACKED": n, "RECOVERED": n,
-    "LOST": n}) and "median_score"; with truth also "within_5px" (fraction of
+    "LOST": n, "DOUBTFUL": n}) and "median_score"; with truth also "within_5px" (fraction of
     frames whose corner error is <= `WITHIN_PX`), "median_error_px",
     "mean_error_px" and "max_error_px" (None where not finite).
   """

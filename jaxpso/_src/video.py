@@ -27,8 +27,8 @@ IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", "
 VIDEO_CODECS = {".mp4": "mp4v", ".avi": "MJPG"}
 """FourCC that `write_video` uses for each file name ending."""
 
-STATUS_COLORS = ((0, 200, 0), (255, 140, 0), (230, 0, 0))
-"""RGB colour of the overlay for status 0 (green), 1 (orange) and 2 (red)."""
+STATUS_COLORS = ((0, 200, 0), (255, 140, 0), (230, 0, 0), (210, 0, 210))
+"""RGB colour of the overlay for status 0 (green), 1 (orange), 2 (red) and 3 (magenta)."""
 
 _TRUTH_COLOR = (0, 120, 255)  # RGB: a thin blue outline for the true corners
 
@@ -192,7 +192,8 @@ def draw_overlay(frame, corners, status, *, truth_corners=None, thickness: int =
   """A colour copy of `frame` with the tracked quadrilateral drawn on it.
 
   The quadrilateral is green for status 0 (TRACKED), orange for 1
-  (RECOVERED) and red for 2 (LOST) (`STATUS_COLORS`, RGB); a filled disc
+  (RECOVERED), red for 2 (LOST) and magenta for 3 (DOUBTFUL)
+  (`STATUS_COLORS`, RGB); a filled disc
   marks its top-left corner (the template's first corner).  Non-finite
   corners draw nothing.
 
