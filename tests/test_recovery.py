@@ -116,3 +116,4 @@ def test_a_look_alike_detected_in_doubt_gives_way_to_the_target(similarity, repl
   assert errors[:3].max() < 0.1 and errors[3] > 100, report  # the look-alike found at frame 3
   assert (result.status[3:7] == jaxpso.TrackStatus.DOUBTFUL).all(), report
   assert result.status[7] == jaxpso.TrackStatus.RECOVERED and errors[7:].max() < 0.1, report
+  assert (result.status[8:] == jaxpso.TrackStatus.TRACKED).all(), report

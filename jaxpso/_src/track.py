@@ -349,8 +349,9 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   frames); else a detection that
   reaches it (RECOVERED; the next frame starts from it with no motion).  A
   region in `doubt` ({region: (last frame, its `peak`)}, changed in place)
-  not LOST is first challenged by a detection (`_margin`); `peak` (R,)
-  holds the best quality each region was TRACKED at.  On the host: it runs
+  not LOST is first challenged by a detection (`_margin`), and leaves doubt
+  where that replaces it within the margin of its best; `peak` (R,) holds
+  the best quality each region was TRACKED at.  On the host: it runs
   only for the regions in `check`; with `TrackConfig.redetect` off only the
   coasting.
   """
@@ -371,6 +372,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
       if (float(whole.quality) >= out["quality"][r] + _margin(config)
           and _corner_distance(whole.homography, out["homography"][r], shape) > _PART_REACH_PX):
         found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
+        if float(whole.quality) >= peak[r] - _margin(config):
+          del doubt[r]
         continue
       if out["inside"][r] >= _MIN_IN_FRAME:
         continue
