@@ -125,7 +125,7 @@ _SQUARE = np.array([[20.0, 10.0], [70.0, 10.0], [70.0, 50.0], [20.0, 50.0]])
 
 
 @pytest.mark.parametrize("status, color", [(0, (0, 200, 0)), (1, (255, 140, 0)),
-                                           (2, (230, 0, 0))])
+                                           (2, (230, 0, 0)), (3, (210, 0, 210))])
 def test_overlay_colour_follows_status(status, color):
   frame = np.full((64, 96), 0.5, np.float32)
   out = io.draw_overlay(frame, _SQUARE, status)
@@ -156,7 +156,7 @@ def test_overlay_draws_truth_and_skips_non_finite_corners():
 def test_overlay_rejects_bad_input():
   frame = np.zeros((8, 8), np.uint8)
   with pytest.raises(ValueError, match="status"):
-    io.draw_overlay(frame, _SQUARE, 3)
+    io.draw_overlay(frame, _SQUARE, 4)
   with pytest.raises(ValueError, match="corners"):
     io.draw_overlay(frame, _SQUARE[:3], 0)
   with pytest.raises(ValueError, match="frame"):
@@ -229,6 +229,14 @@ def test_results_without_truth_and_non_finite_values(tmp_path):
   text = (tmp_path / "results.json").read_text()
   assert "NaN" not in text and "Infinity" not in text  # strict JSON: null instead
   assert json.loads(text)["frames"][1]["score"] is None
+
+
+def test_results_count_and_name_doubtful_frames(tmp_path):
+  result, _ = _result()
+  summary = io.write_results(tmp_path, result._replace(status=np.array([0, 3, 2, 3], np.int32)))
+  assert summary["status_counts"] == {"TRACKED": 1, "RECOVERED": 0, "LOST": 1, "DOUBTFUL": 2}
+  rows = list(csv.DictReader(open(tmp_path / "results.csv")))
+  assert [r["status"] for r in rows] == ["TRACKED", "DOUBTFUL", "LOST", "DOUBTFUL"]
 
 
 def test_results_reject_inconsistent_input(tmp_path):

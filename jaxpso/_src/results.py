@@ -55,7 +55,8 @@ def _table(result, truth_corners):
     if len(column) != length:
       raise ValueError(f"result.{name} has {len(column)} frames, result.corners {length}")
   if np.any((columns["status"] < 0) | (columns["status"] >= len(STATUS_NAMES))):
-    raise ValueError(f"result.status must hold codes 0, 1 or 2, got {np.unique(columns['status'])}")
+    raise ValueError(f"result.status must hold codes 0, 1, 2 or 3, got"
+                     f" {np.unique(columns['status'])}")
   errors = None
   if truth_corners is not None:
     truth = np.asarray(truth_corners, np.float64)
@@ -168,7 +169,7 @@ def write_results(out_dir, result, *, truth_corners=None) -> dict:
 
   Raises:
     TypeError: if `result` lacks a field.
-    ValueError: on inconsistent shapes or status codes outside {0, 1, 2}.
+    ValueError: on inconsistent shapes or status codes outside {0, 1, 2, 3}.
   """
   columns, errors = _table(result, truth_corners)
   summary = _summary(columns, errors)

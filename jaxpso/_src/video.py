@@ -210,7 +210,7 @@ def draw_overlay(frame, corners, status, *, truth_corners=None, thickness: int =
     (H, W, 3) uint8 RGB image.
 
   Raises:
-    ValueError: on a bad shape, a status outside {0, 1, 2} or thickness < 1.
+    ValueError: on a bad shape, a status outside {0, 1, 2, 3} or thickness < 1.
     TypeError: on a frame dtype other than uint8 or float.
 
   Examples:
@@ -226,9 +226,9 @@ def draw_overlay(frame, corners, status, *, truth_corners=None, thickness: int =
   try:
     code = int(status)
   except (TypeError, ValueError):
-    raise ValueError(f"status must be 0, 1 or 2, got {status!r}") from None
-  if code != status or code not in (0, 1, 2):
-    raise ValueError(f"status must be 0, 1 or 2, got {status!r}")
+    raise ValueError(f"status must be 0, 1, 2 or 3, got {status!r}") from None
+  if code != status or not 0 <= code < len(STATUS_COLORS):
+    raise ValueError(f"status must be 0, 1, 2 or 3, got {status!r}")
   if isinstance(thickness, bool) or not isinstance(thickness, int) or thickness < 1:
     raise ValueError(f"thickness must be an int >= 1, got {thickness!r}")
   if truth_corners is not None:
