@@ -1,6 +1,7 @@
 """align: recovers perturbed homographies (Baker–Matthews style) on the embedded image."""
 
 import dataclasses
+import math
 import os
 import re
 import subprocess
@@ -442,10 +443,12 @@ def test_visible_is_the_share_of_the_template_inside_the_image():
 
 
 def test_a_budget_ends_a_hopeless_search_with_its_best_and_says_so():
-  """NCC cannot match an inverted image: every retry runs.  A budget stops the stages once it
-  is spent (checked between stages: at most one stage more) and the status says so."""
+  """NCC cannot match an inverted image: with no hopeless floor every retry runs.  A budget
+  stops the stages once it is spent (checked between stages: at most one stage more) and the
+  status says so."""
   inverted = 1.0 - IMAGE
-  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "similarity": "ncc"})
+  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "similarity": "ncc",
+                                 "hopeless_quality": -math.inf})
   free = jaxpso.align(inverted, TEMPLATE, _perturbed(7, 3.0), config=config, key=1)
   budget = 600
   capped = jaxpso.align(inverted, TEMPLATE, _perturbed(7, 3.0), key=1,
@@ -461,6 +464,26 @@ def test_a_budget_ends_a_hopeless_search_with_its_best_and_says_so():
                        config=dataclasses.replace(config, max_evaluations=budget))
   np.testing.assert_array_equal(batch.status, jaxpso.AlignStatus.BUDGET)
   assert np.all(np.asarray(batch.num_evaluations) <= budget + stage)
+
+
+def test_a_hopeless_search_runs_no_retry_and_says_so():
+  """NCC on an inverted image: the best of the starts and searches stays under NCC's
+  `HOPELESS_QUALITY` (0.3), so no retry runs and the status is NO_MATCH; with the floor off
+  every retry runs.  A clean image is untouched."""
+  inverted = 1.0 - IMAGE
+  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "similarity": "ncc",
+                                 "max_evaluations": None})
+  stopped = jaxpso.align(inverted, TEMPLATE, _perturbed(7, 3.0), config=config, key=1)
+  free = jaxpso.align(inverted, TEMPLATE, _perturbed(7, 3.0), key=1,
+                      config=dataclasses.replace(config, hopeless_quality=-math.inf))
+  assert int(stopped.status) == jaxpso.AlignStatus.NO_MATCH, stopped
+  assert float(stopped.quality) < 0.3 and int(free.status) == jaxpso.AlignStatus.SUCCESS
+  assert 4 * int(stopped.num_evaluations) < int(free.num_evaluations), (stopped, free)
+  batch = jaxpso.align(np.stack([inverted] * 3), np.stack([TEMPLATE] * 3),
+                       np.stack([_perturbed(s, 3.0) for s in (7, 8, 9)]), key=1, config=config)
+  np.testing.assert_array_equal(batch.status, jaxpso.AlignStatus.NO_MATCH)
+  clean = jaxpso.align(IMAGE, TEMPLATE, _perturbed(7, 3.0), config=config, key=1)
+  assert int(clean.status) == jaxpso.AlignStatus.SUCCESS and float(clean.quality) > 0.95
 
 
 def test_a_budget_does_not_touch_a_call_within_it():

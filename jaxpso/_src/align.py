@@ -48,6 +48,7 @@ class AlignStatus(enum.IntEnum):
   SUCCESS = 0
   NO_VALID_WARP = 1
   BUDGET = 2  # `TrackConfig.max_evaluations` spent before the search settled: its best so far
+  NO_MATCH = 3  # the best found stays under `TrackConfig.hopeless_quality`: no retry ran
 
 
 class AlignResult(NamedTuple):
@@ -79,12 +80,13 @@ class AlignResult(NamedTuple):
   visible: jax.Array | None = None
 
 
-def _result(found: problems.Candidate, exhausted, bases, geometry, offsets, sizes,
+def _result(found: problems.Candidate, exhausted, hopeless, bases, geometry, offsets, sizes,
             config) -> AlignResult:
   """`AlignResult` of a batch's best candidates, homographies moved from window to image pixels
   (and for motion "plane", `geometry` given, the pose from the base poses `bases`).
 
-  exhausted (N,) bool: the budget ended the search; offsets (N, 4): each
+  exhausted (N,) bool: the budget ended the search; hopeless () float32:
+  `Knobs.hopeless_quality`; offsets (N, 4): each
   window's top-left pixel in its image and the image's (w, h); sizes (N, 2)
   the templates' (h, w).
 
@@ -94,8 +96,9 @@ def _result(found: problems.Candidate, exhausted, bases, geometry, offsets, size
   def one(found, exhausted, base, geometry, offset, size):
     pose = None if geometry is None else motion.plane_pose(found.u, base, geometry, config.dof)
     to_image = homography.translation(offset[0], offset[1])
-    status = jnp.where(~jnp.isfinite(found.loss), AlignStatus.NO_VALID_WARP,
-                       jnp.where(exhausted, AlignStatus.BUDGET, AlignStatus.SUCCESS))
+    status = jnp.select([~jnp.isfinite(found.loss), exhausted, found.quality < hopeless],
+                        [AlignStatus.NO_VALID_WARP, AlignStatus.BUDGET, AlignStatus.NO_MATCH],
+                        AlignStatus.SUCCESS)
     h = problems.normalized(to_image @ found.homography)
     return AlignResult(
         homography=h, score=score_sign(config) * found.loss, quality=found.quality,
@@ -123,7 +126,8 @@ def _align(images: atlas.Atlas, prepared: templates.Template, bases, geometry, s
     contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
                              geometry, seeds)
     state = register.run(contexts, knobs, "align", config)
-    return _result(state.best, state.exhausted, bases, geometry, offsets, prepared.size, config)
+    return _result(state.best, state.exhausted, knobs.hopeless_quality, bases, geometry, offsets,
+                   prepared.size, config)
 
   return _on_devices(share, mesh, single, images, prepared, bases, geometry, seeds, offsets, knobs)
 
@@ -137,7 +141,7 @@ def _align_baseline(images: atlas.Atlas, pyramids: list, prepared: templates.Tem
     contexts = batching.each(lambda *a: register.context(*a, config), images, prepared, bases,
                              geometry, seeds)
     found = batching.each(lambda c, p: register.baseline(c, p, knobs, config), contexts, pyramids)
-    return _result(found, jnp.zeros(found.loss.shape, bool), bases, geometry, offsets,
+    return _result(found, jnp.zeros(found.loss.shape, bool), -jnp.inf, bases, geometry, offsets,
                    prepared.size, config)
 
   return _on_devices(share, mesh, single, images, pyramids, prepared, bases, geometry, seeds,

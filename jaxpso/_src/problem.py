@@ -52,8 +52,8 @@ class Knobs(NamedTuple):
 
   Every field is a () array: search_radius, max_iterations, quick_iterations, patience (a
   huge value when off), refine_steps, accept_quality (+inf when off),
-  retry_quality, retries, lost_quality, min_valid, recovery_scale, predict (bool),
-  max_evaluations (a huge value when off).
+  retry_quality, hopeless_quality (-inf when off), retries, lost_quality, min_valid,
+  recovery_scale, predict (bool), max_evaluations (a huge value when off).
   """
   search_radius: jax.Array
   max_iterations: jax.Array
@@ -62,6 +62,7 @@ class Knobs(NamedTuple):
   refine_steps: jax.Array
   accept_quality: jax.Array
   retry_quality: jax.Array
+  hopeless_quality: jax.Array
   retries: jax.Array
   lost_quality: jax.Array
   min_valid: jax.Array
