@@ -43,9 +43,12 @@ LOST_QUALITY = {"mi": 0.65, "ncc": 0.8, "ssd": 0.5}
 # search's best stays under this (-inf: never).  NCC on convergence.py's
 # trials (6 conditions, σ 4-20, 50 each, 2026-11-27): after the starts and
 # the full search the inverted image's best is under 0.3 on 211 of 249
-# trials, every later success's at least 0.40 (1 149 of 1 494).  MI finds 8
-# of its 1 478 successes in a retry after a search best of 0.03-0.07, so it
-# has none; SSD was not measured.
+# trials, every later success's at least 0.40 (1 149 of 1 494).  It costs
+# one of runtime.py's 100 noise trials (σ 0.08): 0.18 after the search, a
+# retry found the truth at 0.51; at 0.2 the same, at 0.15 the inverted
+# calls keep their retries (median 142 against 17 ms).  MI finds 8 of its
+# 1 478 successes in a retry after a search best of 0.03-0.07, so it has
+# none; SSD was not measured.
 HOPELESS_QUALITY = {"mi": -math.inf, "ncc": 0.3, "ssd": -math.inf}
 COAST_DECAY = 0.8
 """`TrackConfig.coast`: the k-th lost frame (k = 0, 1, ...) moves the estimate by this to the
