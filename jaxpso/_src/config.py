@@ -48,7 +48,10 @@ LOST_QUALITY = {"mi": 0.65, "ncc": 0.8, "ssd": 0.5}
 # retry found the truth at 0.51; at 0.2 the same, at 0.15 the inverted
 # calls keep their retries (median 142 against 17 ms).  MI finds 8 of its
 # 1 478 successes in a retry after a search best of 0.03-0.07, so it has
-# none; SSD was not measured.
+# none.  SSD has none either: its successes reach down to -0.32 after the
+# search (gain and shading lower its quality); -0.5 would stop 149 of 249
+# inverted calls, but on test_align's inverted image a warp that collapses
+# the template scores -0.23 to 0.38 and none would stop.
 HOPELESS_QUALITY = {"mi": -math.inf, "ncc": 0.3, "ssd": -math.inf}
 COAST_DECAY = 0.8
 """`TrackConfig.coast`: the k-th lost frame (k = 0, 1, ...) moves the estimate by this to the
