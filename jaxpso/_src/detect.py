@@ -227,7 +227,9 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
 
   Returns:
     `AlignResult` of the best candidate (highest quality); its status is
-    `AlignStatus.NO_VALID_WARP` when no candidate could be scored.
+    `AlignStatus.NO_VALID_WARP` when no candidate could be scored, and
+    `AlignStatus.NO_MATCH` when its quality stays under
+    `TrackConfig.hopeless_quality`.
 
   Raises:
     ValueError: a template larger than the image, a flat template, an empty
