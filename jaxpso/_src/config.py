@@ -307,9 +307,8 @@ def _knobs(config: TrackConfig) -> problems.Knobs:
 
 _RUNTIME = ("search_radius", "max_iterations", "quick_iterations", "patience", "refine_steps",
             "accept_quality", "retry_quality", "hopeless_quality", "retries", "lost_quality",
-            "min_valid",
-            "recovery_scale", "predict", "redetect", "coast", "max_evaluations", "levels",
-            "pixels")
+            "min_valid", "recovery_scale", "predict", "redetect", "coast", "max_evaluations",
+            "levels", "pixels")
 
 
 @functools.lru_cache(maxsize=256)

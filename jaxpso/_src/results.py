@@ -114,8 +114,8 @@ def summarize(result, *, truth_corners=None) -> dict:
     dict with "frames" (T), "status_counts" ({"TRACKED": n, "RECOVERED": n,
     "LOST": n, "DOUBTFUL": n}) and "median_score"; with truth also
     "within_5px" (fraction of frames whose corner error is <= `WITHIN_PX`),
-    "median_error_px",
-    "mean_error_px" and "max_error_px" (None where not finite).
+    "median_error_px", "mean_error_px" and "max_error_px" (None where not
+    finite).
   """
   columns, errors = _table(result, truth_corners)
   return _summary(columns, errors)

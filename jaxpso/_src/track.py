@@ -367,6 +367,7 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
       _keep_lost(carry, before, out, recent, geometry, config, r, shape)
       continue
     smeared_from = float(before.reference[r]) - _margin(config)
+    whole = None  # `detect`'s result on this frame, once run
     if r in doubt and out["status"][r] != TrackStatus.LOST:
       whole = _detected(images[r], templates_[r], config, index, smeared_from)
       if (float(whole.quality) >= out["quality"][r] + _margin(config)
@@ -398,7 +399,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
           and _corner_distance(smeared.homography, recent.homography[r], shape) <= reach):
         found[r], shares[r] = (smeared, TrackStatus.TRACKED), share
         continue
-    whole = _detected(images[r], templates_[r], config, index, smeared_from)
+    if whole is None:
+      whole = _detected(images[r], templates_[r], config, index, smeared_from)
     if float(whole.quality) >= config.lost_threshold:
       found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
       if float(whole.quality) < peak[r] - _margin(config):
