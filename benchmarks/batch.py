@@ -14,8 +14,9 @@ low-texture one runs the swarm on many frames, alone as in a batch, so
 region 0 alone is not the batch's per-template cost.  The swarm runs only
 for the regions that need it (`batching.where_needed`); the table gives the
 fraction of frames on which any region's swarm ran and the fraction of
-region-frames, and the status's precision: region-frames TRACKED or RECOVERED but more
-than 5 px off, and region-frames within 5 px reported LOST.
+region-frames, and the status's precision: region-frames TRACKED or
+RECOVERED but more than 5 px off, and region-frames within 5 px reported
+LOST.
 
 With `--cpu-devices N` the CPU is N JAX devices and every batch is split
 over them (`track`'s default `devices`), each running its share's

@@ -98,8 +98,7 @@ GRID = 16  # trajectory samples per frame
 MIP_LEVELS = 4
 TRACKABLE_VISIBLE, TRACKABLE_BLUR_PX = 0.5, 8.0
 LOSS_PX, GOOD_PX, WITHIN = 20.0, 5.0, (5.0, 10.0, 20.0)
-TRACKED, LOST, DOUBTFUL = (int(jaxpso.TrackStatus.TRACKED), int(jaxpso.TrackStatus.LOST),
-                           int(jaxpso.TrackStatus.DOUBTFUL))
+TRACKED, LOST = int(jaxpso.TrackStatus.TRACKED), int(jaxpso.TrackStatus.LOST)
 
 
 @dataclasses.dataclass
@@ -560,12 +559,12 @@ def frame_metrics(errors: np.ndarray, status: np.ndarray, trackable: np.ndarray)
   """Per-sequence counts over frames 1..T−1 (summable across sequences)."""
   e, s, ok = errors[1:], status[1:], trackable[1:]
   lost = np.flatnonzero(errors > LOSS_PX)
-  tracked, doubtful = common.tracked(s), s == DOUBTFUL
+  precision = common.status_precision(s, e, GOOD_PX)
   return {"frames": int(e.size), **{f"within_{int(px)}": int(np.sum(e <= px)) for px in WITHIN},
           "trackable": int(np.sum(ok)), "trackable_within_5": int(np.sum(ok & (e <= GOOD_PX))),
           "first_loss": int(lost[0]) if lost.size else None,
-          "tracked": int(np.sum(tracked)), "tracked_but_off": int(np.sum(tracked & (e > GOOD_PX))),
-          "doubtful": int(np.sum(doubtful)), "doubtful_but_off": int(np.sum(doubtful & (e > GOOD_PX))),
+          **{k: precision[k] for k in ("tracked", "tracked_but_off", "doubtful",
+                                       "doubtful_but_off")},
           "reacquisitions": _reacquisitions(errors, trackable),
           "median_error_px": float(np.median(e)) if e.size else float("nan")}
 
@@ -675,7 +674,8 @@ def markdown(summary, sequences, methods, categories, info, args) -> str:
       lines.append(f"| {category or '**all**'} | {method} | {row['p_at_5']:.1f} |"
                    f" {row['p_at_10']:.1f} | {row['p_at_20']:.1f} | {_pct(row['p_at_5_trackable'])} |"
                    f" {_fmt_loss(row['first_loss'])} | {row['tracked_but_off']}/{row['tracked']} |"
-                   f" {row['doubtful_but_off']}/{row['doubtful']} | {_fmt_reacq(row['reacquisitions'])} | {row['ms_per_frame']:.1f} | {warm} |")
+                   f" {row['doubtful_but_off']}/{row['doubtful']} |"
+                   f" {_fmt_reacq(row['reacquisitions'])} | {row['ms_per_frame']:.1f} | {warm} |")
   return "\n".join(lines) + "\n"
 
 

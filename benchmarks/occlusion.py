@@ -9,8 +9,8 @@ that the region moves further while it is hidden.  Tracked with
 the true camera and the true normal.  Per case and jump: the region's motion
 while hidden (corner RMS between frames 9 and 20), the hidden frames
 reported LOST, the sequences re-acquired within 5 frames of the occlusion's
-end (a frame TRACKED or RECOVERED within 5 px of the true corners, and every frame from
-there to the end), the delay, and the time per hidden and per visible frame
+end (a frame TRACKED or RECOVERED within 5 px of the true corners, and every
+frame from there to the end), the delay, and the time per hidden and per visible frame
 (each frame step timed to completion; frame 1, which compiles, left out).
 
 Usage: python benchmarks/occlusion.py [--seeds 16] [--jumps 0,1,2] [--cases homography,plane]
@@ -92,8 +92,7 @@ def main():
       f" {HIDDEN[0]}–{HIDDEN[1] - 1}, a camera jump at frame {sum(HIDDEN) // 2} of the given size"
       " (× the motion's amplitudes); `TrackConfig()` defaults (\"plane\": 6 DOF, true camera and"
       " normal).  Re-acquired = within 5 frames of the occlusion's end, TRACKED or RECOVERED"
-      " and within 5 px"
-      " from then to the end.  Times are medians per frame, frame steps timed to completion.",
+      " and within 5 px from then to the end.  Times are medians per frame, frame steps timed to completion.",
       "",
       "| motion | jump | motion while hidden, mean / max (px) | hidden frames LOST |"
       " re-acquired (immediately) | max delay | max error after (px) | ms per hidden frame |"

@@ -7,8 +7,8 @@ Tracked with `TrackConfig()` defaults for motion "homography", and for motion
 "plane" with 6 DOF given the true camera matrix and the true normal, then a
 normal tilted 20° off.  Also the same with `predict=True` (a start carrying
 half the last inter-frame motion).  Status precision: frames TRACKED or
-RECOVERED but more than 5 px off, and frames within 5 px reported LOST.  Times per frame
-exclude the first call (compilation).
+RECOVERED but more than 5 px off, and frames within 5 px reported LOST.
+Times per frame exclude the first call (compilation).
 
 Usage: python benchmarks/tracking.py [--frames 200] [--seeds 0,1]
 """
