@@ -521,3 +521,18 @@ def test_three_agreeing_estimates_settle_a_noisy_match_at_any_quality():
     assert float(found.quality) < CONFIG.retry_quality
     assert int(found.num_evaluations) < 600, (seed, int(found.num_evaluations))
     assert _corner_error(found.homography) < 0.35, seed
+
+
+def test_retry_scale_sizes_align_s_retry_alone():
+  """NCC on an inverted image with no floor and no budget: every stage runs, the one retry
+  (`retries=0`) with `retry_scale` swarms of `retry_scale` × the iterations; `recovery_scale`
+  (track's recovery) leaves align as it is."""
+  inverted = 1.0 - IMAGE
+  config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "similarity": "ncc", "retries": 0,
+                                 "hopeless_quality": -math.inf, "max_evaluations": None})
+  spent = {scales: int(jaxpso.align(inverted, TEMPLATE, _perturbed(7, 3.0), key=1, config=(
+      dataclasses.replace(config, retry_scale=scales[0], recovery_scale=scales[1]))
+  ).num_evaluations) for scales in ((1, 3), (3, 3), (3, 1))}
+  search = config.swarm_size * config.max_iterations
+  assert spent[(3, 3)] - spent[(1, 3)] > 6 * search, spent  # 9 against 1 search's worth (7.6)
+  assert spent[(3, 1)] == spent[(3, 3)], spent

@@ -150,6 +150,8 @@ def test_align(call, error, argument, value):
     ("accept-quality", dict(accept_quality=1.5), ValueError, "accept_quality", "1.5"),
     ("predict", dict(predict="yes"), TypeError, "predict", "'yes'"),
     ("recovery", dict(recovery_scale=0), ValueError, "recovery_scale", "0"),
+    ("retry-scale", dict(retry_scale=0), ValueError, "retry_scale", "0"),
+    ("retry-scale-float", dict(retry_scale=1.5), ValueError, "retry_scale", "1.5"),
     ("budget-0", dict(max_evaluations=0), ValueError, "max_evaluations", "0"),
     ("budget-negative", dict(max_evaluations=-100), ValueError, "max_evaluations", "-100"),
     ("budget-float", dict(max_evaluations=5000.0), ValueError, "max_evaluations", "5000.0"),

@@ -137,8 +137,8 @@ class TrackConfig:
       `quality` stays below this after the recovery search
       (`lost_threshold`).  None (the default): `LOST_QUALITY` of the
       similarity, between the scores of wrong and of correct matches.
-    retry_quality (float): `align` runs a second search (`recovery_scale`
-      swarms of other seeds, each `recovery_scale` × the iterations, same
+    retry_quality (float): `align` runs a second search (`retry_scale`
+      swarms of other seeds, each `retry_scale` × the iterations, same
       box, one pyramid level finer) when the quality of its first result is
       below this and the swarm's result and the start's refinement disagree,
       and keeps the better result.
@@ -181,6 +181,12 @@ class TrackConfig:
       radius and iterations of the normal search, and as many swarms; its
       swarm searches the template's 2-D translation only, and Gauss–Newton
       the full motion from its best.
+    retry_scale (int): `align`'s retry has this many swarms, each with this
+      many times the iterations of the normal search (`retry_quality`).
+      Measured against 3 on convergence.py's trials (MI and NCC, 6
+      conditions × σ 2-20 × 50, 2026-11-27): no cell lower, 6 higher,
+      about half the evaluations of the slowest calls; 1 lost a trial in 4
+      MI cells (benchmarks/README.md).
   """
   method: str = "pso"
   similarity: str = "mi"
@@ -206,6 +212,7 @@ class TrackConfig:
   hopeless_quality: float | None = None
   retries: int = 4
   recovery_scale: int = 3
+  retry_scale: int = 2
   redetect: bool = True
   coast: bool = True
   max_evaluations: int | None = 20000
@@ -220,7 +227,7 @@ class TrackConfig:
     baselines.check_supported(self.method, self.motion, self.similarity)
     if self.dof not in DOFS or isinstance(self.dof, bool):
       raise ValueError(f"TrackConfig.dof must be one of {DOFS}, got {self.dof!r}")
-    for name in ("swarm_size", "max_iterations", "recovery_scale"):
+    for name in ("swarm_size", "max_iterations", "recovery_scale", "retry_scale"):
       checks.check_int(getattr(self, name), f"TrackConfig.{name}", 1)
     if self.levels is not None:
       checks.check_int(self.levels, "TrackConfig.levels", 1)
@@ -295,7 +302,8 @@ class TrackConfig:
         retry_quality=np.float32(self.retry_quality),
         hopeless_quality=np.float32(self.hopeless_threshold), retries=np.int32(self.retries),
         lost_quality=np.float32(self.lost_threshold), min_valid=np.float32(self.min_valid),
-        recovery_scale=np.int32(self.recovery_scale), predict=np.bool_(self.predict),
+        recovery_scale=np.int32(self.recovery_scale), retry_scale=np.int32(self.retry_scale),
+        predict=np.bool_(self.predict),
         max_evaluations=np.int32(2**31 - 1 if self.max_evaluations is None
                                  else self.max_evaluations))
 
@@ -307,7 +315,7 @@ def _knobs(config: TrackConfig) -> problems.Knobs:
 
 _RUNTIME = ("search_radius", "max_iterations", "quick_iterations", "patience", "refine_steps",
             "accept_quality", "retry_quality", "hopeless_quality", "retries", "lost_quality",
-            "min_valid", "recovery_scale", "predict", "redetect", "coast", "max_evaluations",
+            "min_valid", "recovery_scale", "retry_scale", "predict", "redetect", "coast", "max_evaluations",
             "levels", "pixels")
 
 

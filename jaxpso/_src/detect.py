@@ -198,7 +198,7 @@ def bounded(config: TrackConfig) -> TrackConfig:
   where no search finds a valid warp every later stage is as short as the
   quick one.
   """
-  return dataclasses.replace(config, retry_quality=-1.0, retries=0, recovery_scale=1,
+  return dataclasses.replace(config, retry_quality=-1.0, retries=0, retry_scale=1,
                              max_iterations=max(1, config.quick_iterations))
 
 

@@ -53,7 +53,7 @@ class Knobs(NamedTuple):
   Every field is a () array: search_radius, max_iterations, quick_iterations, patience (a
   huge value when off), refine_steps, accept_quality (+inf when off),
   retry_quality, hopeless_quality (-inf when off), retries, lost_quality, min_valid,
-  recovery_scale, predict (bool), max_evaluations (a huge value when off).
+  recovery_scale, retry_scale, predict (bool), max_evaluations (a huge value when off).
   """
   search_radius: jax.Array
   max_iterations: jax.Array
@@ -67,6 +67,7 @@ class Knobs(NamedTuple):
   lost_quality: jax.Array
   min_valid: jax.Array
   recovery_scale: jax.Array
+  retry_scale: jax.Array
   predict: jax.Array
   max_evaluations: jax.Array
 

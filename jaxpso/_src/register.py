@@ -121,7 +121,9 @@ class Stage:
     quick: one swarm of `quick_iterations` iterations (align's quick search).
     finer: the swarm searches one level finer than the coarsest.
     wide: `recovery_scale` swarms of `recovery_scale` × the iterations,
-      other seeds (align's retry, track's recovery).
+      other seeds (track's recovery); with `retry`, `retry_scale` (align's
+      retry).
+    retry: a wide search scaled by `Knobs.retry_scale`.
     widen: the wide search's box is also `recovery_scale` × the radius.
     translation: the swarm searches the 2-D translation only.
     top: Gauss–Newton's first level: 0 level 1 (refining the start alone:
@@ -133,6 +135,7 @@ class Stage:
   quick: bool = False
   finer: bool = False
   wide: bool = False
+  retry: bool = False
   widen: bool = False
   translation: bool = False
   top: int = 0
@@ -141,7 +144,7 @@ class Stage:
 
 ALIGN = (Stage(), Stage(top=1), Stage(swarm=True, quick=True, top=2),
          Stage(swarm=True, quick=True, top=2), Stage(swarm=True, top=2),
-         Stage(swarm=True, finer=True, wide=True, top=2))
+         Stage(swarm=True, finer=True, wide=True, retry=True, top=2))
 """`align`'s stages: the start, a coarser start (accepted also where it agrees with the start),
 a quick search and a second one (other seeds), the search, the retry one
 level finer (run again with other seeds, up to `TrackConfig.retries` times,
@@ -214,7 +217,8 @@ def _pass(contexts: problems.Context, state: State, knobs: problems.Knobs, stage
   u, iterations, evaluations = jnp.zeros((count, dim), jnp.float32), zero, zero
   if swarm:
     wide, quick = _column(stages, "wide", stage), _column(stages, "quick", stage)
-    scale = jnp.where(wide, knobs.recovery_scale, 1)
+    scale = jnp.where(wide, jnp.where(_column(stages, "retry", stage), knobs.retry_scale,
+                                      knobs.recovery_scale), 1)
     iterations = jnp.where(quick, knobs.quick_iterations, knobs.max_iterations * scale)
     radius = knobs.search_radius * jnp.where(wide & _column(stages, "widen", stage), scale, 1)
     stream = jnp.uint32(_WIDE_SEED) * (state.retries.astype(jnp.uint32) + 1)
