@@ -184,9 +184,9 @@ class TrackConfig:
     retry_scale (int): `align`'s retry has this many swarms, each with this
       many times the iterations of the normal search (`retry_quality`).
       Measured against 3 on convergence.py's trials (MI and NCC, 6
-      conditions × σ 2-20 × 50, 2026-11-27): no cell lower, 6 higher,
-      about half the evaluations of the slowest calls; 1 lost a trial in 4
-      MI cells (benchmarks/README.md).
+      conditions × σ 2-20 × 50, 2026-11-27): no cell lower, 6 higher, a
+      quarter fewer evaluations in each cell's slowest call (median); 1
+      lost a trial in 4 MI cells (benchmarks/README.md).
   """
   method: str = "pso"
   similarity: str = "mi"
@@ -315,8 +315,8 @@ def _knobs(config: TrackConfig) -> problems.Knobs:
 
 _RUNTIME = ("search_radius", "max_iterations", "quick_iterations", "patience", "refine_steps",
             "accept_quality", "retry_quality", "hopeless_quality", "retries", "lost_quality",
-            "min_valid", "recovery_scale", "retry_scale", "predict", "redetect", "coast", "max_evaluations",
-            "levels", "pixels")
+            "min_valid", "recovery_scale", "retry_scale", "predict", "redetect", "coast",
+            "max_evaluations", "levels", "pixels")
 
 
 @functools.lru_cache(maxsize=256)
