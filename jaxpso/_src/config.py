@@ -89,10 +89,11 @@ class TrackConfig:
       `max_iterations` runs.  0 skips them.  Whatever the quality, `align`
       also settles on its best once three of its estimates (Gauss–Newton
       from the start at two levels, each search's) agree with it within
-      1 px: noise or a real change of appearance keeps a right match's
+      2 px: noise or a real change of appearance keeps a right match's
       quality far under the thresholds.  `track` runs one quick search
       where the start falls short, and the full search only where that is
-      neither accepted nor, not lost, confirmed by both starts.
+      neither accepted nor, not lost, confirmed by both starts (within
+      1 px) or by the starts' best on a quality of at least 0.8.
     patience (int | None): PSO stagnation stop (None disables).
     variant (str): PSO variant (`jaxpso.pso.VARIANTS`).
     topology (str): PSO topology (`jaxpso.pso.TOPOLOGIES`).
