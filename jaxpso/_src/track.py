@@ -341,8 +341,11 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   `check` holds the regions the frame step lost and those whose match lies
   less than `_MIN_IN_FRAME` inside the frame; `before` is the carry before
   the step.  The visible part (`visible.register_part`, from the step's
-  estimate) counts where its quality reaches `TrackConfig.lost_threshold`
-  and it lies within reach of the step's match or of the motion (TRACKED);
+  estimate) counts where it lies within reach of the step's match or of the
+  motion and its quality reaches `TrackConfig.lost_threshold`, or short of
+  it the whole template's smeared by the blur fitted there does
+  (`_smeared_part`: a region coming back into the frame under motion blur
+  faster than its last motion) (TRACKED);
   else, on the same terms, the template smeared along the region's motion
   (`blur.register_blurred`: a region moving at least `blur.MIN_MOTION_PX` a
   frame, at least `blur.MIN_INSIDE` inside, LOST for at most `blur.MAX_GAP`
@@ -384,12 +387,14 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
     part, shares[r] = visibility.register_part(images[r], templates_[r], start, bounded, index,
                                                either_sign)
     reach = _PART_REACH_PX + 2.0 * recent.speed(r, shape) * (recent.gap[r] + 1)
-    if (part is not None and float(part.quality) >= config.lost_threshold
-        and (_corner_distance(part.homography, recent.homography[r], shape) <= reach
-             or _corner_distance(part.homography, out["homography"][r], shape)
-             <= _PART_REACH_PX)):
-      found[r] = part, TrackStatus.TRACKED
-      continue
+    if part is not None and (
+        _corner_distance(part.homography, recent.homography[r], shape) <= reach
+        or _corner_distance(part.homography, out["homography"][r], shape) <= _PART_REACH_PX):
+      if float(part.quality) < config.lost_threshold:
+        part = _smeared_part(images[r], templates_[r], part, bounded, index, either_sign)
+      if part is not None and float(part.quality) >= config.lost_threshold:
+        found[r] = part, TrackStatus.TRACKED
+        continue
     if (recent.speed(r, shape) >= blur.MIN_MOTION_PX and recent.gap[r] <= blur.MAX_GAP
         and _inside_share(start, shape, images[r].shape) >= blur.MIN_INSIDE):
       smeared = blur.register_blurred(images[r], templates_[r], start, recent.motion(r), bounded,
@@ -422,6 +427,18 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
     out["num_iterations"][r] += int(f.num_iterations)
     out["num_evaluations"][r] += int(f.num_evaluations)
   return sharding.split(carry, mesh), out, shares
+
+
+def _smeared_part(image: np.ndarray, template: np.ndarray, part, config: TrackConfig, index: int,
+                  either_sign: bool):
+  """The whole template smeared by the blur fitted at the visible part's match
+  (`blur.register_fitted`), where it lands within `_PART_REACH_PX` of it, else None."""
+  smeared = blur.register_fitted(image, template, np.asarray(part.homography), config, index,
+                                 either_sign)
+  if smeared is None or _corner_distance(smeared.homography, part.homography,
+                                         template.shape) > _PART_REACH_PX:
+    return None
+  return smeared
 
 
 def _margin(config: TrackConfig) -> float:
