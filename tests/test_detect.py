@@ -207,3 +207,38 @@ def test_detect_ranks_its_candidates_on_a_finer_level():
   truth = _placed(49, np.array([233.8, 193.8]), 0.66, -172.0, tilt=tilt)
   found = jaxpso.detect(_frame(template, truth, background), template)
   assert _error(found.homography, truth, 49) < 1.0
+
+
+@pytest.mark.parametrize("similarity", ["mi", "ncc"])
+def test_detect_partial_finds_a_template_partly_outside_the_image(scene, similarity):
+  """Two fifths of the template lie beyond the right edge: the whole-template search has no
+  place for it, the partial one correlates the part inside (`detect._masked_correlation`).
+  The corners outside rest on the pixels inside: measured 0.8 (MI) and 1.4 px (NCC) RMS."""
+  template, background = scene
+  truth = _placed(80, np.array([310.0, 120.0]), 1.1, 15.0)
+  frame = _frame(template, truth, background)
+  config = jaxpso.TrackConfig(similarity=similarity)
+  whole = jaxpso.detect(frame, template, config=config)
+  found = jaxpso.detect(frame, template, config=config, partial=True)
+  assert _error(whole.homography, truth, 80) > 20.0
+  assert _error(found.homography, truth, 80) < 2.0, _error(found.homography, truth, 80)
+  assert float(found.quality) > config.lost_threshold + 0.1, float(found.quality)
+  with pytest.raises(ValueError, match="partial must be a bool"):
+    jaxpso.detect(frame, template, partial=1)
+
+
+def test_masked_correlation_is_opencv_s_inside_the_image():
+  from jaxpso._src import detect
+
+  rng = np.random.default_rng(0)
+  picture = cv2.GaussianBlur(rng.random((60, 80)).astype(np.float32), (0, 0), 1.5)
+  patch = picture[20:36, 30:46].copy()
+  inside = detect._masked_correlation(picture, patch, (0, 0), (64, 44), 0.5)
+  np.testing.assert_allclose(inside, cv2.matchTemplate(picture, patch, cv2.TM_CCOEFF_NORMED),
+                             atol=1e-4)
+  # The patch's left half at the picture's left edge: found over that half alone.
+  cut = np.ascontiguousarray(picture[:, 38:])
+  scores = detect._masked_correlation(cut, patch, (-8, -8), (cut.shape[1] - 8, 52), 0.5)
+  y, x = np.unravel_index(np.argmax(scores), scores.shape)
+  assert (x - 8, y - 8) == (30 - 38, 20) and scores[y, x] > 0.999
+  assert scores[0, 0] == -1.0  # a quarter of the patch inside: under the least share

@@ -14,7 +14,10 @@ candidate basins.  Each candidate is then
 a start of `align` (Gauss–Newton from the start, a coarser start, the swarm
 where those fall short), best first, until one reaches
 `TrackConfig.accept_quality`; the result is the candidate of highest quality.
-So `detect` adds no compiled program: it runs `align`'s.
+So `detect` adds no compiled program: it runs `align`'s.  With `partial`,
+places where the inner square lies partly outside the image are correlated
+too, over the pixels inside (`_masked_correlation`), and the best of them
+are tried after the others: a region coming back into the frame.
 """
 
 from __future__ import annotations
@@ -49,6 +52,16 @@ _REFINE_LEVELS, _REFINE_PX = 2, 3
 # (benchmarks/results/detection.md: 96 % within 2 px with the coarse ranking,
 # 98 % with this one).
 _RERANK = 16
+# `detect(partial=True)` correlates the template's inner square where at
+# least this share of it lies inside the image (a template about half
+# inside), over that share alone.
+_PARTIAL_SHARE = 0.5
+# ... and refines this many candidates of places partly outside the image
+# after the `count` best wholly inside.
+_PARTIAL_CANDIDATES = 2
+# Places partly outside correlate on half a patch, and one corner of the
+# frame can top every map: each map gives this many places.
+_PARTIAL_PLACES = 4
 SCALES, ANGLES, CANDIDATES = (0.5, 2.0), (-180.0, 180.0), 4
 """`detect`'s default scale range, rotation range (degrees) and candidate places refined."""
 # With mutual information the image may be inverted (MI matches it):
@@ -91,22 +104,54 @@ def _similarity(centre, scale: float, angle_deg: float, template_shape) -> np.nd
   return h
 
 
+def _masked_correlation(picture: np.ndarray, patch: np.ndarray, first, last,
+                        least: float) -> np.ndarray:
+  """(rows, cols) the normalised cross-correlation of a (side, side) `patch` whose top-left
+  corner lies at every (x, y) from `first` to `last` (level pixels, both included; the patch
+  may reach outside `picture`), over its pixels inside; -1 where fewer than `least` of them
+  are, or either is flat there."""
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  side = patch.shape[0]
+  rows, cols = picture.shape
+  x0, y0 = first
+  x1, y1 = np.asarray(last) + side  # one past the window's last pixel
+  inside = np.zeros((y1 - y0, x1 - x0), np.float32)
+  image = np.zeros_like(inside)
+  ys, xs = slice(max(y0, 0), min(y1, rows)), slice(max(x0, 0), min(x1, cols))
+  window = picture[ys, xs]
+  # Centred first: the sums below subtract products of large terms.
+  inside[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = 1.0
+  image[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = window - window.mean()
+  patch = patch - patch.mean()
+
+  def sums(a, b):
+    return cv2.matchTemplate(a, np.ascontiguousarray(b, np.float32), cv2.TM_CCORR)
+
+  ones = np.ones_like(patch)
+  count, s_i, s_ii = sums(inside, ones), sums(image, ones), sums(image * image, ones)
+  s_p, s_pp, s_ip = sums(inside, patch), sums(inside, patch * patch), sums(image, patch)
+  n = np.maximum(count, 1.0)
+  covariance = s_ip - s_i * s_p / n
+  spread = np.maximum(s_ii - s_i * s_i / n, 0.0) * np.maximum(s_pp - s_p * s_p / n, 0.0)
+  enough = (count >= least * side * side - 0.5) & (spread > 1e-12 * n * n)
+  return np.where(enough, covariance / np.sqrt(np.maximum(spread, 1e-30)), -1.0)
+
+
 def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: int,
-               either_sign: bool):
+               either_sign: bool, partial=None):
   """Up to `count` (3, 3) float64 starts, best first, from the coarse correlation stage.
 
   image (H, W), template (h, w): float32 grey.  `scales`, `angles` (low,
   high): the ranges searched (angles in degrees); `either_sign`: anticorrelation
-  counts as a match too.
+  counts as a match too; `partial` (scales, angles) ranges: then
+  `_PARTIAL_CANDIDATES` more within them, of places where up to
+  `1 - _PARTIAL_SHARE` of the template's inner square lies outside the image.
   """
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
 
   rows, cols = template.shape
   disc = min(rows, cols) / math.sqrt(2.0)  # the side of the square inside the inscribed disc
-  span = angles[1] - angles[0]
-  angle_grid = _grid(angles[0], angles[1], _ANGLE_STEP, False)
-  if span >= 360.0 - 1e-6:  # a full turn: -180 and 180 are one angle
-    angle_grid = angle_grid[:-1]
   levels = [np.ascontiguousarray(image, np.float32)]
 
   blurs = {}  # one low-passed template per shrink factor, shared by its rotations
@@ -121,30 +166,46 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
       blurs[sigma] = cv2.GaussianBlur(template, (0, 0), sigma)
     return blurs[sigma]
 
-  def match(scale, angle, level, around=None):
-    """(score, (x, y) full-resolution centre) of the best place of the patch at `level`, within
-    a few level pixels of `around` when given; None where the patch does not fit."""
+  def match(scale, angle, level, around=None, border=False, places=1):
+    """[(score, (x, y) full-resolution centre)] of the best `places` places of the patch at
+    `level`, best first, at least half the patch apart; within a few level pixels of `around`
+    when given; [] where the patch does not fit.  `border`: places partly outside the picture
+    (`_PARTIAL_SHARE`), alone where `around` is None."""
     picture = levels[level]
     factor = scale / 2 ** level  # template pixel → level pixel
     side = max(4, int(round(disc * factor)))
     if side + 2 > min(picture.shape):
-      return None
+      return []
     blurred = smoothed(factor)
     # level patch pixel q ← template pixel p: q = factor·R·(p − centre) + patch centre
     to_patch = _similarity(np.full(2, (side - 1) / 2), factor, angle, template.shape)
     patch = cv2.warpAffine(blurred, to_patch[:2], (side, side), flags=cv2.INTER_LINEAR)
     if float(np.std(patch)) < checks.MIN_TEXTURE / 4:
-      return None
-    corner = np.zeros(2, int)
+      return []
+    pad = int(side * (1 - _PARTIAL_SHARE)) if border else 0  # the patch's reach outside
+    corner = np.full(2, -pad)  # the patch's top-left places tried, level pixels
+    last = np.array(picture.shape[::-1]) - side + pad
     if around is not None:  # a window of ±_REFINE_PX level pixels around the centre
       low = np.round(around / 2 ** level - (side - 1) / 2).astype(int) - _REFINE_PX
-      corner = np.clip(low, 0, np.array(picture.shape[::-1]) - side)
-      high = np.minimum(corner + side + 2 * _REFINE_PX, picture.shape[::-1])
-      picture = picture[corner[1]:high[1], corner[0]:high[0]]
-    scores = cv2.matchTemplate(picture, patch, cv2.TM_CCOEFF_NORMED)
-    scores = np.nan_to_num(np.abs(scores) if either_sign else scores, nan=-1.0)
-    y, x = np.unravel_index(int(np.argmax(scores)), scores.shape)
-    return float(scores[y, x]), (corner + [x, y] + (side - 1) / 2) * 2 ** level
+      corner = np.clip(low, corner, last)
+      last = np.minimum(corner + 2 * _REFINE_PX, last)
+    if pad:
+      scores = _masked_correlation(picture, patch, corner, last, _PARTIAL_SHARE)
+      if around is None:  # the places wholly inside are the other search's
+        ys, xs = np.indices(scores.shape) + corner[::-1, None, None]
+        inner = np.array(picture.shape)[:, None, None] - side
+        scores[(ys >= 0) & (xs >= 0) & (ys <= inner[0]) & (xs <= inner[1])] = -1.0
+    else:
+      window = picture[corner[1]:last[1] + side, corner[0]:last[0] + side]
+      scores = cv2.matchTemplate(window, patch, cv2.TM_CCOEFF_NORMED)
+    scores = np.nan_to_num(np.abs(scores) if either_sign and not border else scores, nan=-1.0)
+    found = []
+    for _ in range(places):
+      y, x = np.unravel_index(int(np.argmax(scores)), scores.shape)
+      found.append((float(scores[y, x]), (corner + [x, y] + (side - 1) / 2) * 2 ** level))
+      reach = side // 2
+      scores[max(y - reach, 0):y + reach + 1, max(x - reach, 0):x + reach + 1] = -np.inf
+    return found
 
   def level_of(scale):
     level = max(0, int(round(math.log2(disc * scale / _PATCH_PX))))
@@ -152,42 +213,52 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
       levels.append(cv2.pyrDown(levels[-1]))
     return min(level, len(levels) - 1)
 
-  peaks = []  # (score, centre, scale, angle, level)
-  for scale in _grid(scales[0], scales[1], _SCALE_RATIO, True):
-    level = level_of(scale)
-    for angle in angle_grid:
-      found = match(scale, angle, level)
-      if found is not None:
-        peaks.append(found + (scale, angle, level))
-  peaks.sort(key=lambda p: -p[0])
-  chosen = []
-  for peak in peaks:
-    if all(np.linalg.norm(peak[1] - other[1]) > _SAME_PLACE * disc * min(peak[2], other[2])
-           for other in chosen):
-      chosen.append(peak)
-    if len(chosen) == _RERANK * count:
-      break
-  def refine(candidate, levels: int):
-    """The candidate (score, place, scale, angle, level, angle step, scale step) refined on
-    the next `levels` finer levels, halving the grid's steps each level."""
-    score, place, scale, angle, level, step_angle, step_scale = candidate
-    for finer in range(level - 1, max(level - 1 - levels, -1), -1):
-      tries = [(s_, a_) for s_ in (scale / step_scale, scale, scale * step_scale)
-               for a_ in (angle - step_angle, angle, angle + step_angle)]
-      results = [(match(s_, a_, finer, place), s_, a_) for s_, a_ in tries]
-      results = [r for r in results if r[0] is not None]
-      if not results:
+  def starts(wanted: int, border: bool, scales, angles):
+    """The `wanted` best candidates' (3, 3) homographies within the (low, high) ranges `scales`
+    and `angles`; `border`: of places partly outside."""
+    angle_grid = _grid(angles[0], angles[1], _ANGLE_STEP, False)
+    if angles[1] - angles[0] >= 360.0 - 1e-6:  # a full turn: -180 and 180 are one angle
+      angle_grid = angle_grid[:-1]
+    peaks = []  # (score, centre, scale, angle, level)
+    for scale in _grid(scales[0], scales[1], _SCALE_RATIO, True):
+      level = level_of(scale)
+      for angle in angle_grid:
+        for found in match(scale, angle, level, border=border,
+                           places=_PARTIAL_PLACES if border else 1):
+          peaks.append(found + (scale, angle, level))
+    peaks.sort(key=lambda p: -p[0])
+    chosen = []
+    for peak in peaks:
+      if all(np.linalg.norm(peak[1] - other[1]) > _SAME_PLACE * disc * min(peak[2], other[2])
+             for other in chosen):
+        chosen.append(peak)
+      if len(chosen) == _RERANK * wanted:
         break
-      (score, place), scale, angle = max(results, key=lambda r: r[0][0])
-      level, step_angle, step_scale = finer, step_angle / 2, step_scale ** 0.5
-    return score, place, scale, angle, level, step_angle, step_scale
 
-  # Every candidate refined on the next finer level and ranked there; the best
-  # `count` refined on the finer levels left.
-  ranked = sorted((refine(peak + (_ANGLE_STEP / 2, _SCALE_RATIO ** 0.5), 1) for peak in chosen),
-                  key=lambda c: -c[0])
-  finished = [refine(c, _REFINE_LEVELS - 1) for c in ranked[:count]]
-  return [_similarity(c[1], c[2], c[3], template.shape) for c in finished]
+    def refine(candidate, levels: int):
+      """The candidate (score, place, scale, angle, level, angle step, scale step) refined on
+      the next `levels` finer levels, halving the grid's steps each level."""
+      score, place, scale, angle, level, step_angle, step_scale = candidate
+      for finer in range(level - 1, max(level - 1 - levels, -1), -1):
+        tries = [(s_, a_) for s_ in (scale / step_scale, scale, scale * step_scale)
+                 for a_ in (angle - step_angle, angle, angle + step_angle)]
+        results = [(found[0], s_, a_) for s_, a_ in tries
+                   for found in [match(s_, a_, finer, place, border)] if found]
+        if not results:
+          break
+        (score, place), scale, angle = max(results, key=lambda r: r[0][0])
+        level, step_angle, step_scale = finer, step_angle / 2, step_scale ** 0.5
+      return score, place, scale, angle, level, step_angle, step_scale
+
+    # Every candidate refined on the next finer level and ranked there; the best
+    # `wanted` refined on the finer levels left.
+    ranked = sorted((refine(peak + (_ANGLE_STEP / 2, _SCALE_RATIO ** 0.5), 1) for peak in chosen),
+                    key=lambda c: -c[0])
+    finished = [refine(c, _REFINE_LEVELS - 1) for c in ranked[:wanted]]
+    return [_similarity(c[1], c[2], c[3], template.shape) for c in finished]
+
+  return starts(count, False, scales, angles) + (
+      starts(_PARTIAL_CANDIDATES, True, *partial) if partial is not None else [])
 
 
 def bounded(config: TrackConfig) -> TrackConfig:
@@ -204,7 +275,7 @@ def bounded(config: TrackConfig) -> TrackConfig:
 
 def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
            scales=SCALES, angles=ANGLES, candidates_tried: int = CANDIDATES,
-           motion_blur: bool = False) -> AlignResult:
+           motion_blur: bool = False, partial: bool = False) -> AlignResult:
   """Finds `template` anywhere in `image`, with no start.
 
   The template may appear at any position, rotated in-plane within
@@ -224,6 +295,10 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
     motion_blur: a candidate short of `accept_quality` is aligned again with
       the template smeared by the line of motion blur fitted to the image
       there (`blur.register_fitted`), and the better of the two counts.
+    partial: the template may lie partly outside the image: places where
+      at least half of its inner square is inside are correlated over that
+      part (about 4× the coarse stage's cost), and `align` refines the
+      template over its pixels inside (at least `TrackConfig.min_valid`).
 
   Returns:
     `AlignResult` of the best candidate (highest quality); its status is
@@ -248,19 +323,23 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
   if angles[1] - angles[0] > 360.0:
     raise ValueError(f"angles must span at most 360 degrees, got {angles!r}")
   checks.check_int(candidates_tried, "candidates_tried", 1)
-  if not isinstance(motion_blur, bool):
-    raise ValueError(f"motion_blur must be a bool, got {motion_blur!r}")
+  for name, flag in (("motion_blur", motion_blur), ("partial", partial)):
+    if not isinstance(flag, bool):
+      raise ValueError(f"{name} must be a bool, got {flag!r}")
   return search(picture, patch, config, key, scales, angles, candidates_tried,
-                -math.inf if motion_blur else None)
+                -math.inf if motion_blur else None, partial)
 
 
 def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, scales, angles,
-           candidates_tried: int, blurred_from: float | None) -> AlignResult:
+           candidates_tried: int, blurred_from: float | None,
+           partial=False) -> AlignResult:
   """`detect` on checked input: picture (H, W) and patch (h, w) float32 grey; `blurred_from`:
   a candidate's smeared alignment (`blur.register_fitted`) counts where its quality reaches
-  this, None: none is tried."""
+  this, None: none is tried; `partial`: `detect`'s, or the (scales, angles) ranges of the
+  places partly outside (`candidates`)."""
   either_sign = _EITHER_SIGN[config.similarity]
-  starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign)
+  ranges = (scales, angles) if partial is True else (partial or None)
+  starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign, ranges)
   quick = bounded(config)
   accept = math.inf if config.accept_quality is None else config.accept_quality
   best = None

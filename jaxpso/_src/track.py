@@ -31,6 +31,7 @@ import dataclasses
 import enum
 import functools
 import gc
+import math
 import sys
 from typing import NamedTuple
 
@@ -254,6 +255,13 @@ _MIN_IN_FRAME = 0.75
 # occluder's edge in it was registered 6–52 px off at a quality above the
 # lost threshold (challenges.py, occlusion).
 _PART_REACH_PX = 4.0
+# A LOST region last seen less than _MIN_IN_FRAME inside the frame is also
+# searched for partly outside it (`detect(partial=...)`), within this factor
+# of its last scale and this many degrees of its last rotation (one step of
+# `detect`'s grids either way): over the whole ranges, places at the frame's
+# edge matched on half a patch outscored it (challenges.py, seed 1, out of
+# view).
+_REENTRY_SCALE, _REENTRY_DEG = 2.0 ** (1 / 3), 15.0
 # A detection whose quality falls more than a margin short of the best the
 # region has been TRACKED at is in doubt (DOUBTFUL) for _DOUBT_FRAMES
 # frames, until its quality comes within half the margin of that best: on
@@ -275,7 +283,8 @@ class _Recent(NamedTuple):
   """On the host, per region: the last frame's homography (R, 3, 3) float64; the homographies
   before and after its last step between two frames not LOST (R, 3, 3 each; both the
   re-acquired one after a loss), whose motion the region is predicted to go on with; the
-  frames since the last estimate not LOST (R,).
+  frames since the last estimate not LOST (R,); the last TRACKED frame's homography
+  (R, 3, 3), where a region that left the frame comes back (`_reentry_ranges`).
 
   Per frame only copies: matrix products and inverses on the host, in
   OpenBLAS, cost the device step's threads 0.3-0.6 ms a frame (video.py).
@@ -284,6 +293,7 @@ class _Recent(NamedTuple):
   before: np.ndarray
   after: np.ndarray
   gap: np.ndarray
+  tracked: np.ndarray
 
   def motion(self, r: int) -> np.ndarray:
     """(3, 3) region r's last inter-frame motion, h[2, 2] = 1."""
@@ -350,7 +360,11 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   (`blur.register_blurred`: a region moving at least `blur.MIN_MOTION_PX` a
   frame, at least `blur.MIN_INSIDE` inside, LOST for at most `blur.MAX_GAP`
   frames); else a detection that
-  reaches it (RECOVERED; the next frame starts from it with no motion).  A
+  reaches it (RECOVERED; the next frame starts from it with no motion): for
+  a region last TRACKED less than `_MIN_IN_FRAME` inside, also at places
+  partly outside the frame (`_reentry_ranges`), where it must come within
+  the margin of the region's best (`_margin`: a poster's other half at the
+  edge reached NCC 0.84-0.95 off target, challenges.py, out of view).  A
   region in `doubt` ({region: (last frame, its `peak`)}, changed in place)
   not LOST is first challenged by a detection (`_margin`), and leaves doubt
   where that replaces it within the margin of its best; `peak` (R,) holds
@@ -370,9 +384,10 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
       _keep_lost(carry, before, out, recent, geometry, config, r, shape)
       continue
     smeared_from = float(before.reference[r]) - _margin(config)
+    left = _reentry_ranges(recent.tracked[r], shape, images[r].shape)
     whole = None  # `detect`'s result on this frame, once run
     if r in doubt and out["status"][r] != TrackStatus.LOST:
-      whole = _detected(images[r], templates_[r], config, index, smeared_from)
+      whole = _detected(images[r], templates_[r], config, index, smeared_from, left)
       if (float(whole.quality) >= out["quality"][r] + _margin(config)
           and _corner_distance(whole.homography, out["homography"][r], shape) > _PART_REACH_PX):
         found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
@@ -405,9 +420,13 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
         found[r], shares[r] = (smeared, TrackStatus.TRACKED), share
         continue
     if whole is None:
-      whole = _detected(images[r], templates_[r], config, index, smeared_from)
-    if float(whole.quality) >= config.lost_threshold:
-      found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
+      whole = _detected(images[r], templates_[r], config, index, smeared_from, left)
+    inside = _inside_share(whole.homography, shape, images[r].shape)
+    # Matched partly outside the frame, a detection is not taken in doubt.
+    least = max(config.lost_threshold, -math.inf if inside >= _MIN_IN_FRAME
+                else peak[r] - _margin(config))
+    if float(whole.quality) >= least:
+      found[r], shares[r] = (whole, TrackStatus.RECOVERED), min(inside, 1.0)
       if float(whole.quality) < peak[r] - _margin(config):
         doubt[r] = index + _DOUBT_FRAMES, float(peak[r])
     else:
@@ -441,6 +460,24 @@ def _smeared_part(image: np.ndarray, template: np.ndarray, part, config: TrackCo
   return smeared
 
 
+def _reentry_ranges(h: np.ndarray, shape, frame_shape):
+  """`detect`'s (scales, angles) ranges of places partly outside the frame for a region last
+  seen (at the (3, 3) homography h) less than `_MIN_IN_FRAME` inside, which comes back
+  through an edge: within `_REENTRY_SCALE` and `_REENTRY_DEG` of h's scale and rotation at the
+  template's centre; else None."""
+  if _inside_share(h, shape, frame_shape) >= _MIN_IN_FRAME:
+    return None
+  rows, cols = shape
+  centre = np.array([(cols - 1) / 2, (rows - 1) / 2, 1.0])
+  mapped = np.asarray(h, np.float64) @ np.stack([centre, centre + [1, 0, 0], centre + [0, 1, 0]], 1)
+  xy = mapped[:2] / mapped[2]
+  jacobian = xy[:, 1:] - xy[:, :1]
+  angle = math.degrees(math.atan2(jacobian[1, 0], jacobian[0, 0]))
+  scale = math.sqrt(abs(np.linalg.det(jacobian)))
+  return ((scale / _REENTRY_SCALE, scale * _REENTRY_SCALE),
+          (angle - _REENTRY_DEG, angle + _REENTRY_DEG))
+
+
 def _margin(config: TrackConfig) -> float:
   """The quality margin of a detection in doubt: `_DOUBT_SHARE` of the span from the lost
   threshold to a perfect match."""
@@ -448,11 +485,11 @@ def _margin(config: TrackConfig) -> float:
 
 
 def _detected(image: np.ndarray, template: np.ndarray, config: TrackConfig, index: int,
-              blurred_from: float):
+              blurred_from: float, partial: bool):
   """`detect`'s `AlignResult` for a template in a frame (frame `index` seeds it), a smeared
-  match (motion blur) counting from the quality `blurred_from`."""
+  match (motion blur) counting from the quality `blurred_from`; `partial`: `detect`'s."""
   return detection.search(image, template, config, index, detection.SCALES, detection.ANGLES,
-                          detection.CANDIDATES, blurred_from)
+                          detection.CANDIDATES, blurred_from, partial)
 
 
 def _keep_lost(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geometry,
@@ -477,7 +514,8 @@ def _moved(recent: _Recent, h: np.ndarray, status: np.ndarray) -> _Recent:
   kept = lost[:, None, None]
   before = np.where(kept, recent.before, np.where(step, recent.homography, h))
   after = np.where(kept, recent.after, h)
-  return _Recent(h, before, after, np.where(lost, recent.gap + 1, 0))
+  tracked = np.where((status == TrackStatus.TRACKED)[:, None, None], h, recent.tracked)
+  return _Recent(h, before, after, np.where(lost, recent.gap + 1, 0), tracked)
 
 
 # `track` moves the per-frame outputs to the host in chunks of this many
@@ -644,7 +682,8 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
       num_evaluations=np.zeros(count, np.int32), inside=np.ones(count, np.float32)).items()}]
   outputs, shares, doubt, peak = [], {}, {}, np.full(count, -np.inf)
   reacquire = (config.redetect or config.coast) and config.method == "pso"
-  recent = _Recent(*[starts.astype(np.float64)] * 3, np.zeros(count, np.int64))
+  recent = _Recent(*[starts.astype(np.float64)] * 3, np.zeros(count, np.int64),
+                   starts.astype(np.float64))
 
   def settled(carry, step):
     """The frame step's (carry, out), with its LOST regions and those mostly outside the frame
