@@ -198,6 +198,8 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
     else:
       window = picture[corner[1]:last[1] + side, corner[0]:last[0] + side]
       scores = cv2.matchTemplate(window, patch, cv2.TM_CCOEFF_NORMED)
+    # At the edge, half patches anticorrelated with the frame outscored an MI
+    # target coming back (challenges.py, seed 1, out of view): not counted.
     scores = np.nan_to_num(np.abs(scores) if either_sign and not border else scores, nan=-1.0)
     found = []
     for _ in range(places):
@@ -297,8 +299,9 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
       there (`blur.register_fitted`), and the better of the two counts.
     partial: the template may lie partly outside the image: places where
       at least half of its inner square is inside are correlated over that
-      part (about 4× the coarse stage's cost), and `align` refines the
-      template over its pixels inside (at least `TrackConfig.min_valid`).
+      part (positive correlation only; each map costs about 5× OpenCV's),
+      and `align` refines the template over its pixels inside (at least
+      `TrackConfig.min_valid`).
 
   Returns:
     `AlignResult` of the best candidate (highest quality); its status is

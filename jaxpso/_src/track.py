@@ -362,9 +362,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   frames); else a detection that
   reaches it (RECOVERED; the next frame starts from it with no motion): for
   a region last TRACKED less than `_MIN_IN_FRAME` inside, also at places
-  partly outside the frame (`_reentry_ranges`), where it must come within
-  the margin of the region's best (`_margin`: a poster's other half at the
-  edge reached NCC 0.84-0.95 off target, challenges.py, out of view).  A
+  partly outside the frame (`_reentry_ranges`), where its visible part must
+  confirm it (`_confirmed_part`).  A
   region in `doubt` ({region: (last frame, its `peak`)}, changed in place)
   not LOST is first challenged by a detection (`_margin`), and leaves doubt
   where that replaces it within the margin of its best; `peak` (R,) holds
@@ -421,12 +420,12 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
         continue
     if whole is None:
       whole = _detected(images[r], templates_[r], config, index, smeared_from, left)
-    inside = _inside_share(whole.homography, shape, images[r].shape)
-    # Matched partly outside the frame, a detection is not taken in doubt.
-    least = max(config.lost_threshold, -math.inf if inside >= _MIN_IN_FRAME
-                else peak[r] - _margin(config))
-    if float(whole.quality) >= least:
-      found[r], shares[r] = (whole, TrackStatus.RECOVERED), min(inside, 1.0)
+    share = 1.0
+    if _inside_share(whole.homography, shape, images[r].shape) < _MIN_IN_FRAME:
+      whole, share = _confirmed_part(images[r], templates_[r], whole, bounded, index,
+                                     either_sign, peak[r] - _margin(config))
+    if float(whole.quality) >= config.lost_threshold:
+      found[r], shares[r] = (whole, TrackStatus.RECOVERED), share
       if float(whole.quality) < peak[r] - _margin(config):
         doubt[r] = index + _DOUBT_FRAMES, float(peak[r])
     else:
@@ -476,6 +475,24 @@ def _reentry_ranges(h: np.ndarray, shape, frame_shape):
   scale = math.sqrt(abs(np.linalg.det(jacobian)))
   return ((scale / _REENTRY_SCALE, scale * _REENTRY_SCALE),
           (angle - _REENTRY_DEG, angle + _REENTRY_DEG))
+
+
+def _confirmed_part(image: np.ndarray, template: np.ndarray, found, config: TrackConfig,
+                    index: int, either_sign: bool, least: float):
+  """(match, visible share) of a detection partly outside the frame: its visible part
+  registered from it (`visible.register_part`, or short of `least` `_smeared_part`), where
+  that lands within `_PART_REACH_PX` of it at a quality of at least `least` (the region's
+  best less the margin), else (`found` at
+  quality -inf, 0): a poster's other half at the frame's edge matched NCC 0.93-0.95 off
+  target (challenges.py, out of view)."""
+  part, share = visibility.register_part(image, template, np.asarray(found.homography),
+                                         config, index, either_sign)
+  if part is not None and float(part.quality) < least:  # motion blur
+    part = _smeared_part(image, template, part, config, index, either_sign)
+  if (part is None or not float(part.quality) >= least
+      or _corner_distance(part.homography, found.homography, template.shape) > _PART_REACH_PX):
+    return found._replace(quality=jnp.float32(-jnp.inf)), 0.0
+  return part, share
 
 
 def _margin(config: TrackConfig) -> float:
