@@ -384,12 +384,13 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
       continue
     smeared_from = float(before.reference[r]) - _margin(config)
     left = _reentry_ranges(recent.tracked[r], shape, images[r].shape)
-    whole = None  # `detect`'s result on this frame, once run
+    whole = None  # `detect`'s result on this frame and its visible share, once run
     if r in doubt and out["status"][r] != TrackStatus.LOST:
-      whole = _detected(images[r], templates_[r], config, index, smeared_from, left)
+      whole, share = _detected(images[r], templates_[r], config, index, smeared_from, left,
+                               peak[r] - _margin(config))
       if (float(whole.quality) >= out["quality"][r] + _margin(config)
           and _corner_distance(whole.homography, out["homography"][r], shape) > _PART_REACH_PX):
-        found[r], shares[r] = (whole, TrackStatus.RECOVERED), 1.0
+        found[r], shares[r] = (whole, TrackStatus.RECOVERED), share
         if float(whole.quality) >= peak[r] - _margin(config):
           del doubt[r]
         continue
@@ -419,11 +420,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
         found[r], shares[r] = (smeared, TrackStatus.TRACKED), share
         continue
     if whole is None:
-      whole = _detected(images[r], templates_[r], config, index, smeared_from, left)
-    share = 1.0
-    if _inside_share(whole.homography, shape, images[r].shape) < _MIN_IN_FRAME:
-      whole, share = _confirmed_part(images[r], templates_[r], whole, bounded, index,
-                                     either_sign, peak[r] - _margin(config))
+      whole, share = _detected(images[r], templates_[r], config, index, smeared_from, left,
+                               peak[r] - _margin(config))
     if float(whole.quality) >= config.lost_threshold:
       found[r], shares[r] = (whole, TrackStatus.RECOVERED), share
       if float(whole.quality) < peak[r] - _margin(config):
@@ -468,7 +466,8 @@ def _reentry_ranges(h: np.ndarray, shape, frame_shape):
     return None
   rows, cols = shape
   centre = np.array([(cols - 1) / 2, (rows - 1) / 2, 1.0])
-  mapped = np.asarray(h, np.float64) @ np.stack([centre, centre + [1, 0, 0], centre + [0, 1, 0]], 1)
+  mapped = np.asarray(h, np.float64) @ np.stack([centre, centre + [1, 0, 0], centre + [0, 1, 0]],
+                                                axis=1)
   xy = mapped[:2] / mapped[2]
   jacobian = xy[:, 1:] - xy[:, :1]
   angle = math.degrees(math.atan2(jacobian[1, 0], jacobian[0, 0]))
@@ -482,9 +481,9 @@ def _confirmed_part(image: np.ndarray, template: np.ndarray, found, config: Trac
   """(match, visible share) of a detection partly outside the frame: its visible part
   registered from it (`visible.register_part`, or short of `least` `_smeared_part`), where
   that lands within `_PART_REACH_PX` of it at a quality of at least `least` (the region's
-  best less the margin), else (`found` at
-  quality -inf, 0): a poster's other half at the frame's edge matched NCC 0.93-0.95 off
-  target (challenges.py, out of view)."""
+  best less the margin); else (`found` at quality -inf, 0).  Unconfirmed, a poster's other
+  half at the frame's edge was RECOVERED at NCC 0.95, 103 px off (challenges.py, out of
+  view)."""
   part, share = visibility.register_part(image, template, np.asarray(found.homography),
                                          config, index, either_sign)
   if part is not None and float(part.quality) < least:  # motion blur
@@ -502,11 +501,17 @@ def _margin(config: TrackConfig) -> float:
 
 
 def _detected(image: np.ndarray, template: np.ndarray, config: TrackConfig, index: int,
-              blurred_from: float, partial: bool):
-  """`detect`'s `AlignResult` for a template in a frame (frame `index` seeds it), a smeared
-  match (motion blur) counting from the quality `blurred_from`; `partial`: `detect`'s."""
-  return detection.search(image, template, config, index, detection.SCALES, detection.ANGLES,
-                          detection.CANDIDATES, blurred_from, partial)
+              blurred_from: float, partial, least: float):
+  """(`detect`'s `AlignResult`, visible share) for a template in a frame (frame `index` seeds
+  it), a smeared match (motion blur) counting from the quality `blurred_from`; `partial`:
+  `_reentry_ranges`'s (scales, angles) or None.  A match less than `_MIN_IN_FRAME` inside
+  the frame is `_confirmed_part` at `least`."""
+  found = detection.search(image, template, config, index, detection.SCALES, detection.ANGLES,
+                           detection.CANDIDATES, blurred_from, partial)
+  if _inside_share(found.homography, template.shape, image.shape) >= _MIN_IN_FRAME:
+    return found, 1.0
+  return _confirmed_part(image, template, found, detection.bounded(config), index,
+                         config.similarity == "mi", least)
 
 
 def _keep_lost(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geometry,
