@@ -330,19 +330,18 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
     if not isinstance(flag, bool):
       raise ValueError(f"{name} must be a bool, got {flag!r}")
   return search(picture, patch, config, key, scales, angles, candidates_tried,
-                -math.inf if motion_blur else None, partial)
+                -math.inf if motion_blur else None, (scales, angles) if partial else None)
 
 
 def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, scales, angles,
            candidates_tried: int, blurred_from: float | None,
-           partial=False) -> AlignResult:
+           partial=None) -> AlignResult:
   """`detect` on checked input: picture (H, W) and patch (h, w) float32 grey; `blurred_from`:
   a candidate's smeared alignment (`blur.register_fitted`) counts where its quality reaches
-  this, None: none is tried; `partial`: `detect`'s, or the (scales, angles) ranges of the
-  places partly outside (`candidates`)."""
+  this, None: none is tried; `partial`: the (scales, angles) ranges of the places partly
+  outside the image also searched (`candidates`), None: none."""
   either_sign = _EITHER_SIGN[config.similarity]
-  ranges = (scales, angles) if partial is True else (partial or None)
-  starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign, ranges)
+  starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign, partial)
   quick = bounded(config)
   accept = math.inf if config.accept_quality is None else config.accept_quality
   best = None
