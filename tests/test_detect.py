@@ -173,11 +173,14 @@ def test_track_follows_the_visible_part_of_a_half_covered_region(scene, similari
 
 @pytest.mark.parametrize("similarity", ["mi", "ncc"])
 def test_a_region_leaving_the_frame_is_never_tracked_off_target(scene, similarity):
-  """The region slides out over the right edge at 6 px/frame, down to a tenth inside, and back."""
+  """The region slides out over the right edge at 6 px/frame, down to a twelfth inside, and
+  back.  Under half inside, the whole template's registration squeezes half of it into the
+  frame: NCC's frame step matched it 9-17 px off at 0.87-0.91, so its visible part is also
+  registered from the motion's prediction.  Once LOST, it leaves at its last speed."""
   camera = jaxpso.data.load_image("camera")
   template = camera[120:216, 190:286].copy()
   _, background = scene
-  steps = np.r_[np.arange(0, 24), np.arange(24, -1, -1)]
+  steps = np.r_[np.arange(0, 36), np.arange(35, -1, -1)]
   truths = [_placed(96, np.array([149.5 + 6.0 * s, 119.5]), 1.0, 0.0) for s in steps]
   frames = np.stack([_frame(template, t, background) for t in truths])
   roi = (102, 72, 96, 96)
@@ -186,8 +189,12 @@ def test_a_region_leaving_the_frame_is_never_tracked_off_target(scene, similarit
   inside = np.clip((FRAME[1] - 0.5 - (102 + 6.0 * steps)) / 96, 0, 1)
   tracked = result.status != jaxpso.TrackStatus.LOST
   report = f"errors {errors.round(1)}, status {result.status}, inside {inside.round(2)}"
-  assert np.all(errors[tracked] < 2.0), report  # never TRACKED off the target
-  assert np.all(tracked[inside >= 0.5]), report  # half inside is enough
+  assert np.all(errors[tracked] < 0.5), report  # never TRACKED off the target
+  out = np.arange(len(steps)) < 36
+  assert np.all(tracked[out & (inside >= 0.33)]), report  # its visible part is enough
+  assert np.all(tracked[inside >= 0.5]), report  # and found again coming back
+  leaving = ~tracked & out
+  assert np.any(leaving) and np.all(errors[leaving] < 0.5), report  # coasting at its speed
   np.testing.assert_allclose(result.visible[tracked & (inside > 0.75)],
                              inside[tracked & (inside > 0.75)], atol=1 / 16)  # 16 columns
   assert np.all(result.visible[tracked & (inside < 0.75)] < 0.75)

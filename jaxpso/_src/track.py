@@ -329,16 +329,22 @@ def _pose(h: np.ndarray, geometry, r: int) -> np.ndarray:
                                                geometry.normal[r]))
 
 
-def _coasted(recent: _Recent, r: int, shape) -> np.ndarray:
+def _coasted(recent: _Recent, r: int, shape, frame_shape) -> np.ndarray:
   """(3, 3) region r's homography on its next lost frame: the last one moved by `COAST_DECAY`^k of
   its last motion (to first order), k the lost frames before it; unmoved after a motion of
-  more than a quarter of the template's side."""
+  more than a quarter of the template's side.  A region last TRACKED less than
+  `_MIN_IN_FRAME` inside the frame is leaving it: it moves on by its whole last motion, and
+  stops at its last place partly inside the frame."""
   motion_ = recent.motion(r)
   if recent.speed(r, shape) > max(shape) / 4:
     return recent.homography[r]
-  step = np.eye(3) + COAST_DECAY ** recent.gap[r] * (motion_ - np.eye(3))
+  leaving = _inside_share(recent.tracked[r], shape, frame_shape) < _MIN_IN_FRAME
+  step = np.eye(3) + (1.0 if leaving else COAST_DECAY ** recent.gap[r]) * (motion_ - np.eye(3))
   h = step @ recent.homography[r]
-  return h / h[2, 2]
+  h = h / h[2, 2]
+  if leaving and _inside_share(h, shape, frame_shape) <= 0.0:
+    return recent.homography[r]
+  return h
 
 
 def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent, images: list,
@@ -351,8 +357,12 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   `check` holds the regions the frame step lost and those whose match lies
   less than `_MIN_IN_FRAME` inside the frame; `before` is the carry before
   the step.  The visible part (`visible.register_part`, from the step's
-  estimate) counts where it lies within reach of the step's match or of the
-  motion and its quality reaches `TrackConfig.lost_threshold`, or short of
+  estimate, and where that lies more than `_PART_REACH_PX` from the motion's
+  prediction (`_coasted`) also from the prediction: a region under half
+  inside, NCC's step squeezed half of it into the frame, 9-17 px off at
+  0.87-0.91, test_detect) counts where it lies within reach of the step's
+  match or of the motion and its quality reaches
+  `TrackConfig.lost_threshold`, or short of
   it the whole template's smeared by the blur fitted there does
   (`_smeared_part`: a region coming back into the frame under motion blur
   faster than its last motion) (TRACKED);
@@ -380,7 +390,7 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   for r in (int(r) for r in check):
     shape = templates_[r].shape
     if not config.redetect:
-      _keep_lost(carry, before, out, recent, geometry, config, r, shape)
+      _keep_lost(carry, before, out, recent, geometry, config, r, shape, images[r].shape)
       continue
     smeared_from = float(before.reference[r]) - _margin(config)
     left = _reentry_ranges(recent.tracked[r], shape, images[r].shape)
@@ -396,20 +406,25 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
         continue
       if out["inside"][r] >= _MIN_IN_FRAME:
         continue
-    start = out["homography"][r]  # the step's match, or the last estimate moved on by its motion
-    if out["status"][r] == TrackStatus.LOST:
-      start = _coasted(recent, r, shape)
-    part, shares[r] = visibility.register_part(images[r], templates_[r], start, bounded, index,
-                                               either_sign)
+    predicted = _coasted(recent, r, shape, images[r].shape)  # the last estimate moved on
+    start = predicted if out["status"][r] == TrackStatus.LOST else out["homography"][r]
     reach = _PART_REACH_PX + 2.0 * recent.speed(r, shape) * (recent.gap[r] + 1)
-    if part is not None and (
-        _corner_distance(part.homography, recent.homography[r], shape) <= reach
-        or _corner_distance(part.homography, out["homography"][r], shape) <= _PART_REACH_PX):
-      if float(part.quality) < config.lost_threshold:
-        part = _smeared_part(images[r], templates_[r], part, bounded, index, either_sign)
-      if part is not None and float(part.quality) >= config.lost_threshold:
-        found[r] = part, TrackStatus.TRACKED
-        continue
+    part = None
+    for origin in ([start] if _corner_distance(start, predicted, shape) <= _PART_REACH_PX
+                   else [start, predicted]):
+      part, shares[r] = visibility.register_part(images[r], templates_[r], origin, bounded, index,
+                                                 either_sign)
+      if part is not None and (
+          _corner_distance(part.homography, recent.homography[r], shape) <= reach
+          or _corner_distance(part.homography, out["homography"][r], shape) <= _PART_REACH_PX):
+        if float(part.quality) < config.lost_threshold:
+          part = _smeared_part(images[r], templates_[r], part, bounded, index, either_sign)
+        if part is not None and float(part.quality) >= config.lost_threshold:
+          break
+      part = None
+    if part is not None:
+      found[r] = part, TrackStatus.TRACKED
+      continue
     if (recent.speed(r, shape) >= blur.MIN_MOTION_PX and recent.gap[r] <= blur.MAX_GAP
         and _inside_share(start, shape, images[r].shape) >= blur.MIN_INSIDE):
       smeared = blur.register_blurred(images[r], templates_[r], start, recent.motion(r), bounded,
@@ -427,7 +442,7 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
       if float(whole.quality) < peak[r] - _margin(config):
         doubt[r] = index + _DOUBT_FRAMES, float(peak[r])
     else:
-      _keep_lost(carry, before, out, recent, geometry, config, r, shape)
+      _keep_lost(carry, before, out, recent, geometry, config, r, shape, images[r].shape)
   for r, (f, status) in found.items():
     h = np.asarray(f.homography, np.float32)
     estimate = _pose(h, geometry, r)
@@ -515,14 +530,14 @@ def _detected(image: np.ndarray, template: np.ndarray, config: TrackConfig, inde
 
 
 def _keep_lost(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geometry,
-               config: TrackConfig, r: int, shape) -> None:
+               config: TrackConfig, r: int, shape, frame_shape) -> None:
   """Region r LOST in `carry` and `out` (host copies of the step's and, `before`, of the carry
   before it; changed in place): its last estimate, or with `TrackConfig.coast` that estimate
-  moved on (`_coasted`)."""
+  moved on (`_coasted`, in a frame of `frame_shape`)."""
   if out["status"][r] != TrackStatus.LOST:  # too little of it inside the frame to tell
     carry.reference[r] = before.reference[r]
     out["status"][r] = TrackStatus.LOST
-  h = _coasted(recent, r, shape) if config.coast else recent.homography[r]
+  h = _coasted(recent, r, shape, frame_shape) if config.coast else recent.homography[r]
   estimate = _pose(h, geometry, r) if config.coast else before.estimate[r]
   carry.estimate[r], carry.velocity[r] = estimate, np.eye(estimate.shape[-1], dtype=np.float32)
   out["homography"][r], out["estimate"][r] = h, estimate
