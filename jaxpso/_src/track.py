@@ -355,8 +355,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   coasting with `TrackConfig.coast`).
 
   `check` holds the regions the frame step lost and those whose match lies
-  less than `_MIN_IN_FRAME` inside the frame; `before` is the carry before
-  the step.  The visible part (`visible.register_part`, from the step's
+  less than `_MIN_IN_FRAME` inside the frame, on this frame or the one
+  before; `before` is the carry before the step.  The visible part (`visible.register_part`, from the step's
   estimate, and where that lies more than `_PART_REACH_PX` from the motion's
   prediction (`_coasted`) also from the prediction: a region under half
   inside, NCC's step squeezed half of it into the frame, 9-17 px off at
