@@ -356,14 +356,14 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
 
   `check` holds the regions the frame step lost and those whose match lies
   less than `_MIN_IN_FRAME` inside the frame, on this frame or the one
-  before; `before` is the carry before the step.  The visible part (`visible.register_part`, from the step's
-  estimate, and where that lies more than `_PART_REACH_PX` from the motion's
-  prediction (`_coasted`) also from the prediction: a region under half
-  inside, NCC's step squeezed half of it into the frame, 9-17 px off at
-  0.87-0.91, test_detect) counts where it lies within reach of the step's
-  match or of the motion and its quality reaches
-  `TrackConfig.lost_threshold`, or short of
-  it the whole template's smeared by the blur fitted there does
+  before; `before` is the carry before the step.  The visible part
+  (`visible.register_part`, from the step's estimate, and where that lies
+  more than `_PART_REACH_PX` from the motion's prediction (`_coasted`) also
+  from the prediction: a region under half inside, NCC's step squeezed half
+  of it into the frame, 9-17 px off at 0.87-0.91, test_detect) counts where
+  it lies within reach of the step's match or of the motion and its quality
+  reaches `TrackConfig.lost_threshold`, or short of it the whole template's
+  smeared by the blur fitted there does
   (`_smeared_part`: a region coming back into the frame under motion blur
   faster than its last motion) (TRACKED);
   else, on the same terms, the template smeared along the region's motion
