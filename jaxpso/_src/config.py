@@ -178,8 +178,9 @@ class TrackConfig:
       moves on with its last inter-frame motion, damped by `COAST_DECAY`
       per lost frame (a target hidden while it moves is looked for, and
       reported, where it went); a region leaving the frame (last TRACKED
-      under 3/4 inside) moves on undamped and stops at its last place
-      partly inside; off: the last good estimate is kept.
+      under 3/4 inside) moves on by the whole shift of its centre,
+      keeping its shape, and stops at its last place partly inside; off:
+      the last good estimate is kept.
     recovery_scale (int): `track`'s recovery search has this many times the
       radius and iterations of the normal search, and as many swarms; its
       swarm searches the template's 2-D translation only, and Gauss–Newton
