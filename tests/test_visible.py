@@ -50,3 +50,25 @@ def test_a_start_a_few_pixels_off_is_recentred_before_the_blocks_are_judged(simi
   error = np.sqrt(np.mean(np.sum((found[:, :2] / found[:, 2:] - true) ** 2, -1)))
   assert error < 0.2, error
   assert float(part.quality) >= jaxpso.TrackConfig(similarity=similarity).lost_threshold
+
+
+@pytest.mark.parametrize("similarity", ["mi", "ncc"])
+def test_followed_moves_a_region_mostly_outside_with_its_part_inside(similarity):
+  # A quarter of a brick region inside the frame: too little for its own
+  # homography (`register_part` needs MIN_VISIBLE of the blocks matching at
+  # the estimate), enough to move the estimate by the shift of that quarter.
+  texture = cv2.resize(np.asarray(jaxpso.data.load_image("brick"), np.float32), None, fx=0.5,
+                       fy=0.5, interpolation=cv2.INTER_AREA)
+  template = texture[60:180, 130:250].copy()
+  frame = texture[20:220, 0:160].copy()  # the template's (x, y) = frame's (x + 130, y + 40)
+  truth = np.array([[1.0, 0, 130], [0, 1, 40], [0, 0, 1]])
+  either_sign = similarity == "mi"
+  for shift in ((-14.0, 12.0), (20.0, -6.0), (0.0, 0.0)):
+    start = truth @ np.array([[1.0, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1]])
+    moved, score = visible.followed(frame, template, start, either_sign)
+    np.testing.assert_allclose(moved, truth, atol=1e-9)
+    assert score >= visible.FOLLOW_NCC, score
+  # Every shift within reach leaves less than FOLLOW_SHARE inside: no answer.
+  away = truth @ np.array([[1.0, 0, 64.0], [0, 1, 0], [0, 0, 1]])
+  moved, score = visible.followed(frame, template, away, either_sign)
+  assert score == -1.0 and np.array_equal(moved, away)

@@ -29,6 +29,7 @@ import numpy as np
 
 from jaxpso._src import blur
 from jaxpso._src import checks
+from jaxpso._src import visible as visibility
 from jaxpso._src.align import AlignResult
 from jaxpso._src.align import align
 from jaxpso._src.config import TrackConfig
@@ -110,8 +111,6 @@ def _masked_correlation(picture: np.ndarray, patch: np.ndarray, first, last,
   corner lies at every (x, y) from `first` to `last` (level pixels, both included; the patch
   may reach outside `picture`), over its pixels inside; -1 where fewer than `least` of them
   are, or either is flat there."""
-  import cv2  # lazily: `import jaxpso` stays free of OpenCV
-
   side = patch.shape[0]
   rows, cols = picture.shape
   x0, y0 = first
@@ -120,22 +119,9 @@ def _masked_correlation(picture: np.ndarray, patch: np.ndarray, first, last,
   image = np.zeros_like(inside)
   ys, xs = slice(max(y0, 0), min(y1, rows)), slice(max(x0, 0), min(x1, cols))
   window = picture[ys, xs]
-  # Centred first: the sums below subtract products of large terms.
   inside[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = 1.0
-  image[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = window - window.mean()
-  patch = patch - patch.mean()
-
-  def sums(a, b):
-    return cv2.matchTemplate(a, np.ascontiguousarray(b, np.float32), cv2.TM_CCORR)
-
-  ones = np.ones_like(patch)
-  count, s_i, s_ii = sums(inside, ones), sums(image, ones), sums(image * image, ones)
-  s_p, s_pp, s_ip = sums(inside, patch), sums(inside, patch * patch), sums(image, patch)
-  n = np.maximum(count, 1.0)
-  covariance = s_ip - s_i * s_p / n
-  spread = np.maximum(s_ii - s_i * s_i / n, 0.0) * np.maximum(s_pp - s_p * s_p / n, 0.0)
-  enough = (count >= least * side * side - 0.5) & (spread > 1e-12 * n * n)
-  return np.where(enough, covariance / np.sqrt(np.maximum(spread, 1e-30)), -1.0)
+  image[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = window
+  return visibility.masked_correlation(image, inside, patch, least)
 
 
 def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: int,

@@ -305,11 +305,7 @@ class _Recent(NamedTuple):
     return _corner_distance(self.after[r], self.before[r], shape)
 
 
-def _corner_distance(a, b, shape) -> float:
-  """RMS distance of the corners of an (h, w) template mapped by the homographies a and b."""
-  rect = np.c_[homography.host_rect_corners(shape), np.ones(4)].T
-  pa, pb = np.asarray(a, np.float64) @ rect, np.asarray(b, np.float64) @ rect
-  return float(np.sqrt(np.mean(np.sum((pa[:2] / pa[2] - pb[:2] / pb[2]) ** 2, axis=0))))
+_corner_distance = homography.host_corner_distance
 
 
 def _inside_share(h, shape, frame_shape) -> float:
@@ -327,6 +323,12 @@ def _pose(h: np.ndarray, geometry, r: int) -> np.ndarray:
   from_frame0 = np.asarray(h, np.float64) @ np.linalg.inv(geometry.template_to_frame0[r])
   return np.asarray(plane.pose_from_homography(from_frame0.astype(np.float32), geometry.camera[r],
                                                geometry.normal[r]))
+
+
+def _leaving(recent: _Recent, r: int, shape, frame_shape) -> bool:
+  """Whether region r (a template of `shape`) was last TRACKED less than `_MIN_IN_FRAME` inside
+  a frame of `frame_shape`: leaving it, or coming back."""
+  return _inside_share(recent.tracked[r], shape, frame_shape) < _MIN_IN_FRAME
 
 
 def _translation_of(motion_: np.ndarray, h: np.ndarray, shape) -> np.ndarray:
@@ -350,7 +352,7 @@ def _coasted(recent: _Recent, r: int, shape, frame_shape) -> np.ndarray:
   motion_ = recent.motion(r)
   if recent.speed(r, shape) > max(shape) / 4:
     return recent.homography[r]
-  leaving = _inside_share(recent.tracked[r], shape, frame_shape) < _MIN_IN_FRAME
+  leaving = _leaving(recent, r, shape, frame_shape)
   if leaving:
     step = _translation_of(motion_, recent.homography[r], shape)
   else:
@@ -367,7 +369,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
                 peak: np.ndarray):
   """(carry, out, {region: visible share}) with the regions `check` (indices) registered from
   their visible part, or found again by `detect` in their frames, or else LOST (the estimate
-  coasting with `TrackConfig.coast`).
+  coasting with `TrackConfig.coast`; a region last TRACKED partly outside the frame then
+  moved with its part inside, `_follow_part`).
 
   `check` holds the regions the frame step lost and those whose match lies
   less than `_MIN_IN_FRAME` inside the frame, on this frame or the one
@@ -458,6 +461,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
         doubt[r] = index + _DOUBT_FRAMES, float(peak[r])
     else:
       _keep_lost(carry, before, out, recent, geometry, config, r, shape, images[r].shape)
+      if _leaving(recent, r, shape, images[r].shape):
+        _follow_part(carry, out, geometry, images[r], templates_[r], r, either_sign)
   for r, (f, status) in found.items():
     h = np.asarray(f.homography, np.float32)
     estimate = _pose(h, geometry, r)
@@ -556,6 +561,21 @@ def _keep_lost(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geomet
   estimate = _pose(h, geometry, r) if config.coast else before.estimate[r]
   carry.estimate[r], carry.velocity[r] = estimate, np.eye(estimate.shape[-1], dtype=np.float32)
   out["homography"][r], out["estimate"][r] = h, estimate
+
+
+def _follow_part(carry: _Carry, out: dict, geometry, image: np.ndarray, template: np.ndarray,
+                 r: int, either_sign: bool) -> None:
+  """Region r, LOST at the frame's edge, moved in `carry` and `out` (host copies, changed in
+  place) with its part inside the frame (`visible.followed`) where that correlates at
+  `visible.FOLLOW_NCC`; still LOST: too little is inside to tell its shape.  Coasting
+  alone, a region coming back at 13 px a frame lay 15-82 px off at 12-50 % inside
+  (challenges.py, out of view)."""
+  h, score = visibility.followed(image, template, out["homography"][r].astype(np.float64),
+                                 either_sign)
+  if score >= visibility.FOLLOW_NCC:
+    h = h.astype(np.float32)
+    carry.estimate[r] = out["estimate"][r] = _pose(h, geometry, r)
+    out["homography"][r] = h
 
 
 def _moved(recent: _Recent, h: np.ndarray, status: np.ndarray) -> _Recent:
