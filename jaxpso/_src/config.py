@@ -179,8 +179,9 @@ class TrackConfig:
       per lost frame (a target hidden while it moves is looked for, and
       reported, where it went); a region leaving the frame (last TRACKED
       under 3/4 inside) moves on by the whole shift of its centre,
-      keeping its shape, and stops at its last place partly inside; off:
-      the last good estimate is kept.
+      keeping its shape, and stops at its last place partly inside, and
+      where at least 15 % of it is inside it moves with that part
+      (`visible.followed`); off: the last good estimate is kept.
     recovery_scale (int): `track`'s recovery search has this many times the
       radius and iterations of the normal search, and as many swarms; its
       swarm searches the template's 2-D translation only, and Gauss–Newton

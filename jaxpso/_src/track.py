@@ -369,8 +369,8 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
                 peak: np.ndarray):
   """(carry, out, {region: visible share}) with the regions `check` (indices) registered from
   their visible part, or found again by `detect` in their frames, or else LOST (the estimate
-  coasting with `TrackConfig.coast`; a region last TRACKED partly outside the frame then
-  moved with its part inside, `_follow_part`).
+  coasting with `TrackConfig.coast`, which also moves a region last TRACKED partly outside
+  the frame with its part inside, `_follow_part`).
 
   `check` holds the regions the frame step lost and those whose match lies
   less than `_MIN_IN_FRAME` inside the frame, on this frame or the one
@@ -461,7 +461,7 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
         doubt[r] = index + _DOUBT_FRAMES, float(peak[r])
     else:
       _keep_lost(carry, before, out, recent, geometry, config, r, shape, images[r].shape)
-      if _leaving(recent, r, shape, images[r].shape):
+      if config.coast and _leaving(recent, r, shape, images[r].shape):
         _follow_part(carry, out, geometry, images[r], templates_[r], r, either_sign)
   for r, (f, status) in found.items():
     h = np.asarray(f.homography, np.float32)
