@@ -376,10 +376,14 @@ def test_a_target_leaving_the_frame_is_lost_not_an_error(similarity):
   np.testing.assert_array_equal(result.status[gone], jaxpso.TrackStatus.LOST)
   # NCC scores these frames 0.47–0.74 on other texture: TRACKED under the
   # former threshold 0.5 for every similarity, LOST under NCC's own 0.8.
-  # A LOST frame coasts: it moves the estimate less than the frame before.
+  # A LOST frame partly inside moves with its part inside (measured 2.3 px off at most), and
+  # no LOST estimate runs away: it moves at most 1.1 times the target's 5 px a frame (5.4).
+  lost = result.status == jaxpso.TrackStatus.LOST
   moves = _corner_rms(result.corners[1:], result.corners[:-1])  # moves[k]: frame k → k + 1
-  for frame in np.flatnonzero(result.status == jaxpso.TrackStatus.LOST):
-    assert moves[frame - 1] <= 1.05 * moves[frame - 2] + 0.02, (frame, moves.round(2))
+  assert np.all(moves[np.flatnonzero(lost) - 1] <= 5.5), moves.round(2)
+  partly = lost & (shifts < 105)
+  assert np.any(partly)
+  assert _corner_rms(result.corners[partly], truth[partly]).max() < 3.0, partly
   again = jaxpso.track(frames, roi, config=config, key=0)
   for field, value in result._asdict().items():
     if value is not None:
