@@ -57,7 +57,7 @@ _SHIFT_PX = 8
 # the truth at 23-50 % inside under 5-7 px of motion blur correlated at
 # 0.987-0.999 and was found to 0.1 px; with less inside the best shift lay
 # 1-6 px off at 0.978-0.992, or 17-75 px off at 0.59-0.94.  Tracked, from
-# the shape the region left with, 1.4 px off at 0.973-0.978.  A region
+# the shape the region left with, 1.4-1.7 px off at 0.973-0.986.  A region
 # coming back lay 28-54 px from where it left.
 FOLLOW_PX, FOLLOW_SHARE, FOLLOW_NCC = 48, 0.15, 0.97
 
