@@ -206,14 +206,6 @@ def host_rect_corners(shape) -> np.ndarray:
   return np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]], np.float64)
 
 
-def host_corner_distance(a, b, shape) -> float:
-  """RMS distance of the corners of an (h, w) template mapped by the (3, 3) homographies a and b
-  (NumPy, host-side)."""
-  rect = np.c_[host_rect_corners(shape), np.ones(4)].T
-  pa, pb = np.asarray(a, np.float64) @ rect, np.asarray(b, np.float64) @ rect
-  return float(np.sqrt(np.mean(np.sum((pa[:2] / pa[2] - pb[:2] / pb[2]) ** 2, axis=0))))
-
-
 def apply_to_points(h, points) -> tuple[jax.Array, jax.Array]:
   """Maps points through homographies.
 

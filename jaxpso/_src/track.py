@@ -305,7 +305,11 @@ class _Recent(NamedTuple):
     return _corner_distance(self.after[r], self.before[r], shape)
 
 
-_corner_distance = homography.host_corner_distance
+def _corner_distance(a, b, shape) -> float:
+  """RMS distance of the corners of an (h, w) template mapped by the homographies a and b."""
+  rect = np.c_[homography.host_rect_corners(shape), np.ones(4)].T
+  pa, pb = np.asarray(a, np.float64) @ rect, np.asarray(b, np.float64) @ rect
+  return float(np.sqrt(np.mean(np.sum((pa[:2] / pa[2] - pb[:2] / pb[2]) ** 2, axis=0))))
 
 
 def _inside_share(h, shape, frame_shape) -> float:

@@ -152,13 +152,13 @@ def followed(frame: np.ndarray, template: np.ndarray, h: np.ndarray,
   rows, cols = template.shape
   reach = FOLLOW_PX
   rim = math.ceil(2 * _SMOOTHING_PX)  # smoothing reflects an image at its edges: left out
-  around = np.array([[1.0, 0, -reach], [0, 1, -reach], [0, 0, 1]])
+  # The template less its rim, shifted by up to `reach` either way.
+  pad = reach - rim
+  around = np.array([[1.0, 0, -pad], [0, 1, -pad], [0, 0, 1]])
   back, inside = mapped_back(cv2.GaussianBlur(frame, (0, 0), _SMOOTHING_PX), h @ around,
-                             (cols + 2 * reach, rows + 2 * reach), rim)
+                             (cols + 2 * pad, rows + 2 * pad), rim)
   patch = cv2.GaussianBlur(template, (0, 0), _SMOOTHING_PX)[rim:rows - rim, rim:cols - rim]
-  scores = masked_correlation(back[rim:rows + 2 * reach - rim, rim:cols + 2 * reach - rim],
-                              inside[rim:rows + 2 * reach - rim, rim:cols + 2 * reach - rim]
-                              > 0.999, patch, FOLLOW_SHARE)
+  scores = masked_correlation(back, inside > 0.999, patch, FOLLOW_SHARE)
   if either_sign:
     scores = np.where(scores > -1.0, np.abs(scores), -1.0)
   dy, dx = np.unravel_index(int(np.argmax(scores)), scores.shape)
