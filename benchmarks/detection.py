@@ -21,13 +21,21 @@ area-averages it down, as a camera's pixel integrates light; by default each
 pixel samples the warped template at its centre, which aliases a fine
 template shrunk under half its size.
 
+`--reference DIR` (an earlier checkout) measures each variant with it too,
+each variant's two measurements in fresh processes one after the other, so
+that their times compare on a shared machine.
+
 Usage: python benchmarks/detection.py [--trials 100] [--seed 0] [--variants default,ncc]
-       [--supersample 1]
+       [--supersample 1] [--reference DIR]
 """
 
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
+import sys
 import time
 
 import cv2
@@ -121,6 +129,16 @@ def measure(trials, variant: str) -> dict:
           "errors": np.round(errors, 3).tolist(), "ms": np.round(times, 2).tolist()}
 
 
+def _probe(checkout: str, variant: str, args) -> dict:
+  """`measure`'s row of `variant` in a fresh process importing jaxpso from `checkout`."""
+  command = [sys.executable, os.path.abspath(__file__), "--probe", "--trials", str(args.trials),
+             "--seed", str(args.seed), "--variants", variant,
+             "--supersample", str(args.supersample)]
+  out = subprocess.run(command, env=dict(os.environ, PYTHONPATH=checkout), cwd=checkout,
+                       check=True, capture_output=True, text=True).stdout
+  return json.loads(out.strip().splitlines()[-1])
+
+
 def markdown(rows, info, args) -> str:
   lines = ["# Detection with no start (`benchmarks/detection.py`)", "", common.machine_line(info),
            "",
@@ -129,7 +147,9 @@ def markdown(rows, info, args) -> str:
            f" {SCALES[0]}–{SCALES[1]}×, perspective, "
            + (f"warped at {args.supersample}× and area-averaged down" if args.supersample > 1
               else "sampled at each pixel's centre")
-           + f"; success = RMS corner error ≤ {GOOD_PX} px.",
+           + f"; success = RMS corner error ≤ {GOOD_PX} px."
+           + (f"  Rows marked 'reference': {args.reference}, each measured in a fresh process"
+              " beside the row above it." if args.reference else ""),
            "", "| variant | success % | median ms | p90 ms | max ms | median error px |",
            "|---|---|---|---|---|---|"]
   for r in rows:
@@ -147,13 +167,27 @@ def main():
                       help="render the template at this many times the frame's resolution and"
                            " area-average it down (1: each pixel sampled at its centre)")
   parser.add_argument("--name", default="detection")
+  parser.add_argument("--reference", help="an earlier checkout to measure alongside")
+  parser.add_argument("--probe", action="store_true", help=argparse.SUPPRESS)
   args = parser.parse_args()
   if args.supersample < 1:
     parser.error(f"--supersample must be >= 1, got {args.supersample}")
-  images = {name: common.photo(name) for name in NAMES}
-  rng = np.random.default_rng(args.seed)
-  trials = [scene(rng, images, args.supersample) for _ in range(args.trials)]
-  rows = [measure(trials, v) for v in args.variants.split(",")]
+  if args.reference:
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    rows = []
+    for variant in args.variants.split(","):
+      rows.append(_probe(root, variant, args))
+      rows.append(dict(_probe(os.path.abspath(args.reference), variant, args),
+                       variant=f"{variant}, reference"))
+      print(rows[-2:], flush=True)
+  else:
+    images = {name: common.photo(name) for name in NAMES}
+    rng = np.random.default_rng(args.seed)
+    trials = [scene(rng, images, args.supersample) for _ in range(args.trials)]
+    rows = [measure(trials, v) for v in args.variants.split(",")]
+    if args.probe:
+      print(json.dumps(rows[0]))
+      return
   info = common.machine()
   common.write(args.name, {"machine": info, "rows": rows}, markdown(rows, info, args))
 

@@ -8,7 +8,9 @@ translation: for a grid of rotations and scales the template's inner disc,
 rotated and scaled onto a pyramid level where it spans about `_PATCH_PX`
 pixels, is correlated with that level of the whole image (OpenCV's
 normalised cross-correlation, on the host: no compilation, a fraction of a
-millisecond per map).  The best peaks, one per rotation and scale, merged
+millisecond per map).  A template whose inner square is flat at that level
+(its telling edges lie near its rim) is correlated whole instead, over its
+rotated footprint.  The best peaks, one per rotation and scale, merged
 where they name one place and ranked again on the next finer level, are the
 candidate basins.  Each candidate is then
 a start of `align` (Gauss–Newton from the start, a coarser start, the swarm
@@ -38,6 +40,11 @@ from jaxpso._src.config import TrackConfig
 # matched on: small enough that a frame's coarse level is cheap to scan,
 # large enough that the correlation peak stands out of a textured background.
 _PATCH_PX = 12.0
+# A template whose inner square, low-passed for its level, varies under this
+# share of the whole template's spread (a flat middle, the telling edges near
+# the rim) is correlated whole, over its rotated footprint (OpenCV's masked
+# correlation, about 5× the cost of a map).
+_FLAT_MIDDLE = 0.5
 # Grid steps: 15° of rotation and a factor 2^(1/3) of scale move the patch's
 # rim by about 1.6 px of its level, inside the correlation peak.
 _ANGLE_STEP, _SCALE_RATIO = 15.0, 2.0 ** (1 / 3)
@@ -138,19 +145,20 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
 
   rows, cols = template.shape
   disc = min(rows, cols) / math.sqrt(2.0)  # the side of the square inside the inscribed disc
+  margin = int((min(rows, cols) - disc) / 2)  # the rim around the inner square
   levels = [np.ascontiguousarray(image, np.float32)]
-
-  blurs = {}  # one low-passed template per shrink factor, shared by its rotations
+  lowpassed = {}  # sigma → (low-passed template, flat middle), shared by its rotations
 
   def smoothed(factor):
-    """The template low-passed before shrinking by `factor` (a Gaussian of about half the new
-    pixel), or itself."""
+    """(the template low-passed before shrinking by `factor` (a Gaussian of about half the new
+    pixel) or itself; whether its inner square varies under `_FLAT_MIDDLE` of its spread)."""
     sigma = 0.5 * math.sqrt(1 / factor ** 2 - 1) if factor < 1 else 0.0
-    if sigma <= 0.3:
-      return template
-    if sigma not in blurs:
-      blurs[sigma] = cv2.GaussianBlur(template, (0, 0), sigma)
-    return blurs[sigma]
+    sigma = sigma if sigma > 0.3 else 0.0
+    if sigma not in lowpassed:
+      blurred = cv2.GaussianBlur(template, (0, 0), sigma) if sigma else template
+      middle = blurred[margin:rows - margin, margin:cols - margin]
+      lowpassed[sigma] = blurred, float(np.std(middle)) < _FLAT_MIDDLE * float(np.std(blurred))
+    return lowpassed[sigma]
 
   def match(scale, angle, level, around=None, border=False, places=1):
     """[(score, (x, y) full-resolution centre)] of the best `places` places of the patch at
@@ -159,14 +167,20 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
     (`_PARTIAL_SHARE`), alone where `around` is None."""
     picture = levels[level]
     factor = scale / 2 ** level  # template pixel → level pixel
-    side = max(4, int(round(disc * factor)))
+    blurred, flat_middle = smoothed(factor)
+    whole = flat_middle and not border
+    side = max(4, int(math.ceil(math.hypot(rows, cols) * factor)) if whole
+               else int(round(disc * factor)))
     if side + 2 > min(picture.shape):
       return []
-    blurred = smoothed(factor)
     # level patch pixel q ← template pixel p: q = factor·R·(p − centre) + patch centre
-    to_patch = _similarity(np.full(2, (side - 1) / 2), factor, angle, template.shape)
-    patch = cv2.warpAffine(blurred, to_patch[:2], (side, side), flags=cv2.INTER_LINEAR)
-    if float(np.std(patch)) < checks.MIN_TEXTURE / 4:
+    to_patch = _similarity(np.full(2, (side - 1) / 2), factor, angle, template.shape)[:2]
+    patch = cv2.warpAffine(blurred, to_patch, (side, side), flags=cv2.INTER_LINEAR)
+    mask = None
+    if whole:  # the template's footprint, less its interpolated rim
+      mask = (cv2.warpAffine(np.ones_like(blurred), to_patch, (side, side),
+                             flags=cv2.INTER_LINEAR) > 0.999).astype(np.float32)
+    if float(np.std(patch if mask is None else patch[mask > 0])) < checks.MIN_TEXTURE / 4:
       return []
     pad = int(side * (1 - _PARTIAL_SHARE)) if border else 0  # the patch's reach outside
     corner = np.full(2, -pad)  # the patch's top-left places tried, level pixels
@@ -183,10 +197,11 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
         scores[(ys >= 0) & (xs >= 0) & (ys <= inner[0]) & (xs <= inner[1])] = -1.0
     else:
       window = picture[corner[1]:last[1] + side, corner[0]:last[0] + side]
-      scores = cv2.matchTemplate(window, patch, cv2.TM_CCOEFF_NORMED)
+      scores = cv2.matchTemplate(window, patch, cv2.TM_CCOEFF_NORMED, mask=mask)
     # At the edge, half patches anticorrelated with the frame outscored an MI
     # target coming back (challenges.py, seed 1, out of view): not counted.
-    scores = np.nan_to_num(np.abs(scores) if either_sign and not border else scores, nan=-1.0)
+    scores = np.abs(scores) if either_sign and not border else scores
+    scores = np.where(np.isfinite(scores), scores, -1.0)
     found = []
     for _ in range(places):
       y, x = np.unravel_index(int(np.argmax(scores)), scores.shape)
