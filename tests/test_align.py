@@ -536,3 +536,41 @@ def test_retry_scale_sizes_align_s_retry_alone():
   search = config.swarm_size * config.max_iterations
   assert spent[(3, 3)] - spent[(1, 3)] > 6 * search, spent  # 9 against 1 search's worth (7.6)
   assert spent[(3, 1)] == spent[(3, 3)], spent
+
+
+def _quad_start(corners, size: int = 100):
+  """(3, 3) the start mapping a size×size template's corners to `corners` (4, 2)."""
+  square = np.float32([[0, 0], [size - 1, 0], [size - 1, size - 1], [0, size - 1]])
+  return cv2.getPerspectiveTransform(square, np.float32(corners)).astype(np.float32)
+
+
+def _quad_error(h, origin, size: int = 100) -> float:
+  """RMS corner error (px) of h against the translation to `origin` of a size×size template."""
+  square = np.float64([[0, 0], [size - 1, 0], [size - 1, size - 1], [0, size - 1]])
+  mapped = cv2.perspectiveTransform(square[None], np.asarray(h, np.float64))[0]
+  return float(np.sqrt(np.mean(np.sum((mapped - square - origin) ** 2, axis=1))))
+
+
+def test_the_start_is_refined_from_the_coarsest_level_first():
+  """runtime.py's clean trial 8 (NCC): the start, about 10 px off, refined from level 1 alone
+  lands in a neighbouring basin, 5.9 px off at 0.989, over accept_quality; refined from the
+  coarsest level it reaches the truth at 1.0 (`register.ALIGN`), and that settles the call."""
+  template = IMAGE[281:381, 152:252].copy()
+  start = _quad_start([[148.95, 283.54], [246.76, 273.67], [249.01, 381.49], [143.59, 367.91]])
+  found = jaxpso.align(IMAGE, template, start, config=jaxpso.TrackConfig(similarity="ncc"))
+  assert _quad_error(found.homography, (152, 281)) < 0.05  # measured 0.01
+  assert int(found.num_evaluations) < 40  # measured 25; with both refinements 48
+
+
+def test_a_coarse_refinement_short_of_sure_is_checked_from_level_1():
+  """convergence.py's shading trial 9 at σ 2 (NCC): refined from the coarsest level the start
+  goes 13 px off to 0.987, under `register._SURE_QUALITY`; refined from level 1 it stays on
+  the truth at 0.999, and the better of the two is the result."""
+  rows, cols = np.mgrid[:IMAGE.shape[0], :IMAGE.shape[1]]
+  shaded = np.clip(IMAGE * (0.5 + 0.4 * (rows / 511 + cols / 511)), 0, 1).astype(np.float32)
+  template = IMAGE[282:382, 137:237].copy()
+  start = _quad_start([[136.49, 284.72], [235.82, 281.56], [232.3, 379.79], [134.21, 382.04]])
+  found = jaxpso.align(shaded, template, start, config=jaxpso.TrackConfig(similarity="ncc"),
+                       key=9)
+  assert _quad_error(found.homography, (137, 282)) < 0.3  # measured 0.04
+  assert float(found.quality) > 0.995

@@ -117,11 +117,12 @@ class TrackConfig:
       ≥ 0.8): noise and blur lower the right alignment's quality too, and the
       swarm should not run on every frame for it; but a start that moved
       more than 8 px to a quality under that 0.02 margin waits for the
-      coarser refinement below to agree.  `align` refines a start
-      that falls short once more from the coarsest level before it runs the
-      swarm, and accepts it where both refinements agree within 1 px on a
-      quality of at least 0.8 (under image noise the right alignment's
-      quality stays under 0.95).
+      coarser refinement below to agree.  `align` refines its start from
+      the coarsest level first and accepts that alone from a quality of
+      0.99 (or this, if higher); under it, the start refined from level 1
+      too, the better of the two counts, accepted at this quality or where
+      both agree within 1 px on a quality of at least 0.8 (under image
+      noise the right alignment's quality stays under 0.95).
     resolution (int | None): points each of the template's sets holds at
       most (a pixel budget; static).  A template level with more keeps those
       of largest gradient, and the full-resolution loss and `quality` a

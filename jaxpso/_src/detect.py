@@ -12,9 +12,9 @@ millisecond per map).  A template whose inner square is flat at that level
 (its telling edges lie near its rim) is correlated whole instead, over its
 rotated footprint.  The best peaks, one per rotation and scale, merged
 where they name one place and ranked again on the next finer level, are the
-candidate basins.  Each candidate is then
-a start of `align` (Gauss–Newton from the start, a coarser start, the swarm
-where those fall short), best first, until one reaches
+candidate basins.  Each candidate is then a start of `align` (Gauss–Newton
+from the coarsest level, then from level 1, the swarm where those fall
+short), best first, until one reaches
 `TrackConfig.accept_quality`; the result is the candidate of highest quality.
 So `detect` adds no compiled program: it runs `align`'s.  With `partial`,
 places where the inner square lies partly outside the image are correlated
@@ -265,8 +265,8 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
 
 
 def bounded(config: TrackConfig) -> TrackConfig:
-  """`config` whose `align` runs Gauss–Newton from the start and from the coarsest level, then
-  one quick swarm whose result stands whatever its quality.
+  """`config` whose `align` runs Gauss–Newton from the start (from the coarsest level, then from
+  level 1), then one quick swarm whose result stands whatever its quality.
 
   Only knobs change (no other program): a wrong place costs no retries, and
   where no search finds a valid warp every later stage is as short as the

@@ -72,6 +72,16 @@ _SEEN = 8
 # `track` also accepts a start within this margin of its last search's
 # quality, where that was at least _MIN_REFERENCE (`_advance_track`).
 _REFERENCE_MARGIN, _MIN_REFERENCE = 0.02, 0.8
+# align refines its start from the coarsest level first (the widest basin) and
+# accepts that refinement alone from this quality; under it the start is
+# refined from level 1 too, and the better of the two counts.  The coarse
+# level's optimum can lie in a wrong basin near a start already in the right
+# one (convergence.py, shading, σ 2, NCC: 13 px off at 0.987, the start's own
+# refinement 0.999), or 1 px off at 0.953 (gamma, σ 4, MI); the level-1
+# refinement first, the order before, accepted a wrong basin at 0.95-0.99 (NCC:
+# convergence.py none σ 16 86 % against 96 % coarse first; runtime.py clean 96 %
+# against 99 %) and ran both starts on most calls (33 evaluations, 18 now).
+_SURE_QUALITY = 0.99
 # A start's refinement that moved further than this (u, about pixels) is
 # accepted under that margin only where the coarser start confirms it.
 _NEAR_PX = 8.0
@@ -149,14 +159,14 @@ class Stage:
   base: int = 0
 
 
-ALIGN = (Stage(), Stage(top=1), Stage(swarm=True, quick=True, top=2),
+ALIGN = (Stage(top=1), Stage(), Stage(swarm=True, quick=True, top=2),
          Stage(swarm=True, quick=True, top=2), Stage(swarm=True, top=2),
          Stage(swarm=True, finer=True, wide=True, retry=True, top=2))
-"""`align`'s stages: the start, a coarser start (accepted also where it agrees with the start),
-a quick search and a second one (other seeds), the search, the retry one
+"""`align`'s stages: the start refined from the coarsest level (accepted alone from
+`_SURE_QUALITY`), then from level 1 (accepted also where the two agree), a quick search and a second one (other seeds), the search, the retry one
 level finer (run again with other seeds, up to `TrackConfig.retries` times,
 while it disagrees with the best)."""
-_START, _COARSER, _QUICK, _QUICK_AGAIN, _SEARCH, _RETRY = range(len(ALIGN))
+_COARSE_START, _FINE_START, _QUICK, _QUICK_AGAIN, _SEARCH, _RETRY = range(len(ALIGN))
 TRACK = (Stage(), Stage(top=1), Stage(swarm=True, quick=True, top=2), Stage(swarm=True, top=2),
          Stage(base=1), Stage(swarm=True, wide=True, widen=True, translation=True, top=2, base=1))
 """`track`'s stages: the start, a coarser start, a quick search, the search, then the recovery
@@ -255,15 +265,15 @@ def _pass(contexts: problems.Context, state: State, knobs: problems.Knobs, stage
 
 
 def _starts(state: State, found: problems.Candidate, contexts: problems.Context, knobs):
-  """(the merged candidate, the starts' best, whether a coarser start follows a short first one).
+  """(the merged candidate, the starts' best, whether a second start follows a short first one).
 
   `better(state.best, found)`, and at stage 0 `found` alone; Gauss–Newton from
   the coarsest level differs from the start's (level 1) with more than two levels.
   """
   merged = better(state.best, found)
   start = batching.select(state.stage == 0, found, merged)
-  coarse_next = jnp.isfinite(knobs.accept_quality) & (contexts.template.levels > 2)
-  return merged, start, coarse_next
+  second_start = jnp.isfinite(knobs.accept_quality) & (contexts.template.levels > 2)
+  return merged, start, second_start
 
 
 def _agrees(first: problems.Candidate, second: problems.Candidate,
@@ -288,20 +298,23 @@ def _seen_and_votes(state: State, found: problems.Candidate, best: problems.Cand
 
 def _advance_align(state: State, found: problems.Candidate, contexts: problems.Context,
                    knobs: problems.Knobs) -> State:
-  """align's transitions: accepted start → done; else coarser start, quick searches, search, retry.
+  """align's transitions: accepted start → done; else the start refined from level 1, quick
+  searches, search, retry.
 
-  After the starts, `state.best` is the start's refinement: the first quick
+  After the starts, `state.best` is the better of the start's refinements: the first quick
   search is compared with it, and every later search with the best so far.
   """
   stage, done = state.stage, len(ALIGN)
-  starting = stage <= _COARSER
-  merged, start, coarse_next = _starts(state, found, contexts, knobs)
+  starting = stage <= _FINE_START
+  merged, start, second_start = _starts(state, found, contexts, knobs)
   agree = _agrees(found, state.best, contexts)
-  # The coarser start confirms the start where both refinements agree on a
+  # The two refinements of the start confirm each other where they agree on a
   # match of at least _MIN_REFERENCE (noise lowers a right alignment's
   # quality under accept_quality, and the swarm would run for nothing).
-  accepted = ((start.quality >= knobs.accept_quality)
-              | ((stage == _COARSER) & agree & (start.quality >= _MIN_REFERENCE)))
+  bar = jnp.where((stage == _COARSE_START) & second_start,
+                  jnp.maximum(knobs.accept_quality, _SURE_QUALITY), knobs.accept_quality)
+  accepted = ((start.quality >= bar)
+              | ((stage == _FINE_START) & agree & (start.quality >= _MIN_REFERENCE)))
   searched = better(found, state.best)._replace(confirmed=agree)
   seen, num_seen, votes = _seen_and_votes(state, found, batching.select(
       stage <= _SEARCH, searched, merged), contexts, _ALIGN_VOTE_PX)
@@ -322,9 +335,9 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
                          batching.select(stage <= _SEARCH, searched, merged))
   search = jnp.where(knobs.quick_iterations > 0, _QUICK, _SEARCH)
   following = jnp.select(
-      [stage == _START, stage == _COARSER, stage == _QUICK, stage == _QUICK_AGAIN,
+      [stage == _COARSE_START, stage == _FINE_START, stage == _QUICK, stage == _QUICK_AGAIN,
        stage == _SEARCH],
-      [jnp.where(accepted, done, jnp.where(coarse_next, _COARSER, search)),
+      [jnp.where(accepted, done, jnp.where(second_start, _FINE_START, search)),
        jnp.where(accepted, done, search), jnp.where(settled, done, _QUICK_AGAIN),
        jnp.where(settled, done, _SEARCH), jnp.where(settled | hopeless, done, _RETRY)],
       jnp.where(again, _RETRY, done))
@@ -343,7 +356,7 @@ def _advance_track(state: State, found: problems.Candidate, contexts: problems.C
   # search reached (noise and blur lower the right alignment's quality too),
   # unless that was under _MIN_REFERENCE (low texture: too uncertain).
   reference = contexts.reference
-  merged, start, coarse_next = _starts(state, found, contexts, knobs)
+  merged, start, second_start = _starts(state, found, contexts, knobs)
   searched = better(found, state.best)
   quality = jnp.select([stage <= _T_COARSER, stage == _T_QUICK], [start.quality, searched.quality],
                        found.quality)  # the starts', the quick search's or the recovery's
@@ -379,7 +392,7 @@ def _advance_track(state: State, found: problems.Candidate, contexts: problems.C
   following = jnp.select(
       [stage == _T_START, stage == _T_COARSER, stage == _T_QUICK, stage == _T_SEARCH,
        stage == _T_RECOVERY_START],
-      [jnp.where(accepted, done, jnp.where(coarse_next, _T_COARSER, search)),
+      [jnp.where(accepted, done, jnp.where(second_start, _T_COARSER, search)),
        jnp.where(accepted, done, search), jnp.where(quick_done, done, _T_SEARCH),
        jnp.where(searched.quality >= knobs.lost_quality, done, _T_RECOVERY_START),
        jnp.where(accepted, done, _T_RECOVERY)], done)
