@@ -80,7 +80,8 @@ _REFERENCE_MARGIN, _MIN_REFERENCE = 0.02, 0.8
 # refinement 0.999), or 1 px off at 0.953 (gamma, σ 4, MI); the level-1
 # refinement first, the order before, accepted a wrong basin at 0.95-0.99 (NCC:
 # convergence.py none σ 16 86 % against 96 % coarse first; runtime.py clean 96 %
-# against 99 %) and ran both starts on most calls (33 evaluations, 18 now).
+# against 99 %) and ran both starts on most calls (runtime.py clean: a median of
+# 33 evaluations, 18 with the coarse refinement first).
 _SURE_QUALITY = 0.99
 # A start's refinement that moved further than this (u, about pixels) is
 # accepted under that margin only where the coarser start confirms it.
@@ -163,9 +164,9 @@ ALIGN = (Stage(top=1), Stage(), Stage(swarm=True, quick=True, top=2),
          Stage(swarm=True, quick=True, top=2), Stage(swarm=True, top=2),
          Stage(swarm=True, finer=True, wide=True, retry=True, top=2))
 """`align`'s stages: the start refined from the coarsest level (accepted alone from
-`_SURE_QUALITY`), then from level 1 (accepted also where the two agree), a quick search and a second one (other seeds), the search, the retry one
-level finer (run again with other seeds, up to `TrackConfig.retries` times,
-while it disagrees with the best)."""
+`_SURE_QUALITY`), then from level 1 (accepted also where the two agree), a quick search and a
+second one (other seeds), the search, the retry one level finer (run again with other seeds, up
+to `TrackConfig.retries` times, while it disagrees with the best)."""
 _COARSE_START, _FINE_START, _QUICK, _QUICK_AGAIN, _SEARCH, _RETRY = range(len(ALIGN))
 TRACK = (Stage(), Stage(top=1), Stage(swarm=True, quick=True, top=2), Stage(swarm=True, top=2),
          Stage(base=1), Stage(swarm=True, wide=True, widen=True, translation=True, top=2, base=1))
