@@ -7,6 +7,7 @@ import datetime
 import json
 import os
 import platform
+import subprocess
 import sys
 import time
 
@@ -14,6 +15,8 @@ import jax
 import numpy as np
 
 RESULTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "results")
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+"""The checkout these benchmarks belong to."""
 IMAGES = os.environ.get("JAXPSO_IMAGES", os.path.join(
     os.path.dirname(os.path.abspath(__file__)), "..", "..", "shared", "data", "images"))
 """The CC0 photographs (`../shared/data/images`, or `$JAXPSO_IMAGES`)."""
@@ -103,6 +106,15 @@ def write(name: str, payload: dict, markdown: str) -> None:
   with open(os.path.join(RESULTS, name + ".md"), "w") as f:
     f.write(markdown)
   print(markdown)
+
+
+def in_checkout(script: str, checkout: str, arguments: list):
+  """The JSON last line `script` (a benchmark's path) prints when run with `arguments` in a fresh
+  process importing jaxpso from `checkout`: a reference measured beside the current code."""
+  out = subprocess.run([sys.executable, os.path.abspath(script), *arguments],
+                       env=dict(os.environ, PYTHONPATH=checkout), cwd=checkout, check=True,
+                       capture_output=True, text=True).stdout
+  return json.loads(out.strip().splitlines()[-1])
 
 
 def corner_error(h, origin, size: int = 100) -> float:

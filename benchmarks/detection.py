@@ -34,8 +34,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import subprocess
-import sys
 import time
 
 import cv2
@@ -131,12 +129,9 @@ def measure(trials, variant: str) -> dict:
 
 def _probe(checkout: str, variant: str, args) -> dict:
   """`measure`'s row of `variant` in a fresh process importing jaxpso from `checkout`."""
-  command = [sys.executable, os.path.abspath(__file__), "--probe", "--trials", str(args.trials),
-             "--seed", str(args.seed), "--variants", variant,
-             "--supersample", str(args.supersample)]
-  out = subprocess.run(command, env=dict(os.environ, PYTHONPATH=checkout), cwd=checkout,
-                       check=True, capture_output=True, text=True).stdout
-  return json.loads(out.strip().splitlines()[-1])
+  return common.in_checkout(__file__, checkout, [
+      "--probe", "--trials", str(args.trials), "--seed", str(args.seed), "--variants", variant,
+      "--supersample", str(args.supersample)])
 
 
 def markdown(rows, info, args) -> str:
@@ -173,10 +168,9 @@ def main():
   if args.supersample < 1:
     parser.error(f"--supersample must be >= 1, got {args.supersample}")
   if args.reference:
-    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     rows = []
     for variant in args.variants.split(","):
-      rows.append(_probe(root, variant, args))
+      rows.append(_probe(common.ROOT, variant, args))
       rows.append(dict(_probe(os.path.abspath(args.reference), variant, args),
                        variant=f"{variant}, reference"))
       print(rows[-2:], flush=True)

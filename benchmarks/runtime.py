@@ -55,8 +55,6 @@ import dataclasses
 import itertools
 import json
 import os
-import subprocess
-import sys
 import time
 
 import numpy as np
@@ -335,12 +333,9 @@ def _budgets(text: str) -> list:
 
 def _probe(checkout: str, part: str, options) -> list:
   """`part`'s rows measured in a fresh process importing jaxpso from `checkout`."""
-  env = dict(os.environ, PYTHONPATH=checkout)
-  out = subprocess.run([sys.executable, os.path.abspath(__file__), "--probe", part,
-                        "--trials", str(options.trials), "--cases", options.cases,
-                        "--budgets", options.budgets],
-                       env=env, cwd=checkout, check=True, capture_output=True, text=True).stdout
-  return json.loads(out.strip().splitlines()[-1])
+  return common.in_checkout(__file__, checkout, [
+      "--probe", part, "--trials", str(options.trials), "--cases", options.cases,
+      "--budgets", options.budgets])
 
 
 def main():

@@ -23,7 +23,14 @@ def programs_made() -> int:
 
 SIZE = 64
 ORIGIN = (220.0, 170.0)
-SOURCE = np.float32([[0, 0], [SIZE - 1, 0], [SIZE - 1, SIZE - 1], [0, SIZE - 1]])
+
+
+def _square(size: int) -> np.ndarray:
+  """(4, 2) float32 corners of a size×size template."""
+  return np.float32([[0, 0], [size - 1, 0], [size - 1, size - 1], [0, size - 1]])
+
+
+SOURCE = _square(SIZE)
 TRUTH = SOURCE + np.float32(ORIGIN)
 CONFIG = jaxpso.TrackConfig(levels=2, swarm_size=24, max_iterations=25, search_radius=12.0)
 IMAGE = load_image("camera")
@@ -35,9 +42,11 @@ def _perturbed(seed, sigma):
   return cv2.getPerspectiveTransform(SOURCE, corners).astype(np.float32)
 
 
-def _corner_error(h):
-  mapped = cv2.perspectiveTransform(SOURCE[None], np.asarray(h, np.float64))[0]
-  return float(np.sqrt(np.mean(np.sum((mapped - TRUTH) ** 2, axis=1))))
+def _corner_error(h, origin=ORIGIN, size: int = SIZE) -> float:
+  """RMS corner error (px) of h against the translation to `origin` of a size×size template."""
+  square = _square(size)
+  mapped = cv2.perspectiveTransform(square[None], np.asarray(h, np.float64))[0]
+  return float(np.sqrt(np.mean(np.sum((mapped - (square + np.float32(origin))) ** 2, axis=1))))
 
 
 @pytest.mark.parametrize("measure", ["mi", "ncc", "ssd"])
@@ -438,8 +447,7 @@ def test_visible_is_the_share_of_the_template_inside_the_image():
   truth = cv2.getPerspectiveTransform(SOURCE, SOURCE + np.float32([464, 170]))
   found = jaxpso.align(IMAGE, template, truth, config=CONFIG, key=1)
   assert abs(float(found.visible) - 0.75) <= 1 / 16, found.visible
-  mapped = cv2.perspectiveTransform(SOURCE[None], np.asarray(found.homography, np.float64))[0]
-  assert np.sqrt(np.mean(np.sum((mapped - SOURCE - [464, 170]) ** 2, axis=1))) < 0.5
+  assert _corner_error(found.homography, (464, 170)) < 0.5
 
 
 def test_a_budget_ends_a_hopeless_search_with_its_best_and_says_so():
@@ -540,15 +548,7 @@ def test_retry_scale_sizes_align_s_retry_alone():
 
 def _quad_start(corners, size: int = 100):
   """(3, 3) the start mapping a size×size template's corners to `corners` (4, 2)."""
-  square = np.float32([[0, 0], [size - 1, 0], [size - 1, size - 1], [0, size - 1]])
-  return cv2.getPerspectiveTransform(square, np.float32(corners)).astype(np.float32)
-
-
-def _quad_error(h, origin, size: int = 100) -> float:
-  """RMS corner error (px) of h against the translation to `origin` of a size×size template."""
-  square = np.float64([[0, 0], [size - 1, 0], [size - 1, size - 1], [0, size - 1]])
-  mapped = cv2.perspectiveTransform(square[None], np.asarray(h, np.float64))[0]
-  return float(np.sqrt(np.mean(np.sum((mapped - square - origin) ** 2, axis=1))))
+  return cv2.getPerspectiveTransform(_square(size), np.float32(corners)).astype(np.float32)
 
 
 def test_the_start_is_refined_from_the_coarsest_level_first():
@@ -558,7 +558,7 @@ def test_the_start_is_refined_from_the_coarsest_level_first():
   template = IMAGE[281:381, 152:252].copy()
   start = _quad_start([[148.95, 283.54], [246.76, 273.67], [249.01, 381.49], [143.59, 367.91]])
   found = jaxpso.align(IMAGE, template, start, config=jaxpso.TrackConfig(similarity="ncc"))
-  assert _quad_error(found.homography, (152, 281)) < 0.05  # measured 0.01
+  assert _corner_error(found.homography, (152, 281), 100) < 0.05  # measured 0.01
   assert int(found.num_evaluations) < 40  # measured 25; with both refinements 48
 
 
@@ -572,5 +572,5 @@ def test_a_coarse_refinement_short_of_sure_is_checked_from_level_1():
   start = _quad_start([[136.49, 284.72], [235.82, 281.56], [232.3, 379.79], [134.21, 382.04]])
   found = jaxpso.align(shaded, template, start, config=jaxpso.TrackConfig(similarity="ncc"),
                        key=9)
-  assert _quad_error(found.homography, (137, 282)) < 0.3  # measured 0.04
+  assert _corner_error(found.homography, (137, 282), 100) < 0.3  # measured 0.04
   assert float(found.quality) > 0.995
