@@ -121,8 +121,9 @@ class TrackConfig:
       the coarsest level first and accepts that alone from a quality of
       0.99 (or this, if higher); under it, the start refined from level 1
       too, the better of the two counts, accepted at this quality or where
-      both agree within 1 px on a quality of at least 0.8 (under image
-      noise the right alignment's quality stays under 0.95).
+      both agree within 1 px on a quality of at least 0.35 (under image
+      noise or on a real second view the right alignment's quality stays
+      far under 0.95).
     resolution (int | None): points each of the template's sets holds at
       most (a pixel budget; static).  A template level with more keeps those
       of largest gradient, and the full-resolution loss and `quality` a

@@ -83,6 +83,15 @@ _REFERENCE_MARGIN, _MIN_REFERENCE = 0.02, 0.8
 # against 99 %) and ran both starts on most calls (runtime.py clean: a median of
 # 33 evaluations, 18 with the coarse refinement first).
 _SURE_QUALITY = 0.99
+# align's two refinements of the start settle the call where they agree (within
+# _AGREE_PX) on a quality of at least this: on real photo pairs and under
+# noise a right match's quality is 0.2-0.8 (benchmarks/results/runtime_cases.md),
+# and the quick searches ran on most such calls (runtime.py's real pairs, MI: a
+# median of 351 evaluations, 42 with this floor, the same 76 % success).  Where
+# both land in one wrong basin its quality was lower (convergence.py, 6
+# conditions × σ 2-20 × 50, MI, NCC and SSD, 2026-11-28: 0.02-0.05 MI, 0.30
+# NCC, shading σ 20); 0.35 loses none of those trials, 0.2 that NCC one.
+_STARTS_AGREE_QUALITY = 0.35
 # A start's refinement that moved further than this (u, about pixels) is
 # accepted under that margin only where the coarser start confirms it.
 _NEAR_PX = 8.0
@@ -310,12 +319,13 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
   merged, start, second_start = _starts(state, found, contexts, knobs)
   agree = _agrees(found, state.best, contexts)
   # The two refinements of the start confirm each other where they agree on a
-  # match of at least _MIN_REFERENCE (noise lowers a right alignment's
-  # quality under accept_quality, and the swarm would run for nothing).
+  # match of at least _STARTS_AGREE_QUALITY (noise and a real change of
+  # appearance lower a right alignment's quality under accept_quality, and
+  # the swarm would run for nothing).
   bar = jnp.where((stage == _COARSE_START) & second_start,
                   jnp.maximum(knobs.accept_quality, _SURE_QUALITY), knobs.accept_quality)
   accepted = ((start.quality >= bar)
-              | ((stage == _FINE_START) & agree & (start.quality >= _MIN_REFERENCE)))
+              | ((stage == _FINE_START) & agree & (start.quality >= _STARTS_AGREE_QUALITY)))
   searched = better(found, state.best)._replace(confirmed=agree)
   seen, num_seen, votes = _seen_and_votes(state, found, batching.select(
       stage <= _SEARCH, searched, merged), contexts, _ALIGN_VOTE_PX)
