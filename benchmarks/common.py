@@ -98,6 +98,19 @@ def timed_frame_steps(after_step=None):
     track._frame_step = step
 
 
+def frame_seconds(run) -> np.ndarray:
+  """(steps − 1,) seconds from the end of each `jaxpso.track` frame step to the next one's.
+
+  `run()` calls `jaxpso.track` once; each gap holds the host's work after a
+  step (its re-detection too) and the next frame's step, which is blocked
+  on (`timed_frame_steps`), so a frame's cost cannot hide behind the next.
+  """
+  ends = []
+  with timed_frame_steps(lambda _: ends.append(time.perf_counter())):
+    run()
+  return np.diff(ends)
+
+
 def write(name: str, payload: dict, markdown: str) -> None:
   """Writes results/NAME.json and results/NAME.md."""
   os.makedirs(RESULTS, exist_ok=True)

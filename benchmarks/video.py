@@ -29,6 +29,9 @@ frames within 5 px.  Status precision: share of jaxpso's TRACKED/RECOVERED
 frames more than 5 px off, and of frames within 5 px reported LOST.  ms per
 frame: a whole `track` call (after one warm-up call on the same clip) or the
 ECC loop, divided by the frames after the first, interleaved per clip.
+Slowest frame: a third `track` call with each frame step blocked on
+(`common.frame_seconds`: the step and the host's work after it, re-detection
+included), its slowest frame over its median one.
 
 Usage: python benchmarks/video.py [--frames 120] [--clips camera,brick,gravel,grass]
 """
@@ -179,6 +182,9 @@ def measure(clips, frames: int) -> list[dict]:
         rows.append(_row(name, stride, tracker,
                          jaxpso.io.corner_errors(result.corners, kept_truth), seconds,
                          result.status))
+        frame = common.frame_seconds(lambda: jaxpso.track(kept, box, config=config))
+        rows[-1].update(slowest_frame_ms=1e3 * float(np.max(frame)),
+                        slowest_over_median=float(np.max(frame) / np.median(frame)))
       print({k: rows[-1][k] for k in ("clip", "stride", "p_at_5", "ms_per_frame")}, flush=True)
   return rows
 
@@ -197,6 +203,7 @@ def summary(rows: list[dict]) -> list[dict]:
       if "tracked" in mine[0]:
         for key in ("tracked_but_off", "tracked", "good_but_lost", "good"):
           pooled[key] = sum(r[key] for r in mine)
+        pooled["slowest_over_median"] = max(r["slowest_over_median"] for r in mine)
       out.append(pooled)
   return out
 
@@ -214,27 +221,35 @@ def markdown(rows, pooled, info, frames) -> str:
       " within 5 px (corner RMS).  ms/frame: whole clip after a warm-up call, interleaved"
       " per clip, shared machine.  Status precision: TRACKED or RECOVERED frames more than"
       " 5 px off / all such frames; good frames (within 5 px) reported LOST / all good"
-      " frames.  Script: benchmarks/video.py.", "",
+      " frames.  Slowest frame: a third `track` call, each frame step blocked on, its slowest"
+      " frame (the step and the host's work after it) over its median frame (pooled: the"
+      " largest over the clips).  Script: benchmarks/video.py.", "",
       "## All clips pooled", "",
       "| stride | tracker | P@5 | mean error (px) | ms/frame | × ECC's time | tracked but > 5 px off"
-      " | good but LOST |",
-      "|---:|---|---:|---:|---:|---:|---:|---:|"]
+      " | good but LOST | slowest / median frame |",
+      "|---:|---|---:|---:|---:|---:|---:|---:|---:|"]
   for row in pooled:
     ecc = next(r for r in pooled if r["stride"] == row["stride"] and "ECC" in r["tracker"])
-    off = lost = "–"
+    off = lost = slowest = "–"
     if "tracked" in row:
       off = f"{row['tracked_but_off']}/{row['tracked']}"
       lost = f"{row['good_but_lost']}/{row['good']}"
+      slowest = f"{row['slowest_over_median']:.1f}"
     lines.append(f"| {row['stride']} | {row['tracker']} | {row['p_at_5']:.1%} |"
                  f" {row['mean_error_px']:.2f} | {row['ms_per_frame']:.1f} |"
-                 f" {row['ms_per_frame'] / ecc['ms_per_frame']:.2f} | {off} | {lost} |")
+                 f" {row['ms_per_frame'] / ecc['ms_per_frame']:.2f} | {off} | {lost} |"
+                 f" {slowest} |")
   lines += ["", "## Per clip", "",
-            "| clip | stride | tracker | P@5 | mean error (px) | median error (px) | ms/frame |",
-            "|---|---:|---|---:|---:|---:|---:|"]
+            "| clip | stride | tracker | P@5 | mean error (px) | median error (px) | ms/frame |"
+            " slowest frame ms (/ median) |",
+            "|---|---:|---|---:|---:|---:|---:|---:|"]
   for row in rows:
+    slowest = "–"
+    if "slowest_frame_ms" in row:
+      slowest = f"{row['slowest_frame_ms']:.1f} ({row['slowest_over_median']:.1f})"
     lines.append(f"| {row['clip']} | {row['stride']} | {row['tracker']} | {row['p_at_5']:.1%} |"
                  f" {row['mean_error_px']:.2f} | {row['median_error_px']:.2f} |"
-                 f" {row['ms_per_frame']:.1f} |")
+                 f" {row['ms_per_frame']:.1f} | {slowest} |")
   return "\n".join(lines) + "\n"
 
 
