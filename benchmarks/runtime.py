@@ -61,8 +61,6 @@ import numpy as np
 
 import common
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
 SIGMAS = (2.0, 8.0)
 TRIALS = 200
 CASES = ("clean", "gamma", "shading", "noise", "inverted", "real_pairs")
@@ -355,9 +353,9 @@ def main():
   if args.probe:
     print(json.dumps(PARTS[args.probe](args)))
     return
-  trees = {"now": ROOT}
+  trees = {"now": common.ROOT}
   if args.reference:
-    trees = {"reference": os.path.abspath(args.reference), "now": ROOT}
+    trees = {"reference": os.path.abspath(args.reference), "now": common.ROOT}
   measured = {name: [] for name in trees}
   for round_ in range(args.rounds):
     for part in args.parts.split(","):

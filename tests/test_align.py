@@ -37,9 +37,14 @@ IMAGE = load_image("camera")
 TEMPLATE = IMAGE[170:170 + SIZE, 220:220 + SIZE].copy()
 
 
+def _quad_start(corners, size: int = 100):
+  """(3, 3) the start mapping a size×size template's corners to `corners` (4, 2)."""
+  return cv2.getPerspectiveTransform(_square(size), np.float32(corners)).astype(np.float32)
+
+
 def _perturbed(seed, sigma):
   corners = TRUTH + np.random.default_rng(seed).normal(0, sigma, (4, 2)).astype(np.float32)
-  return cv2.getPerspectiveTransform(SOURCE, corners).astype(np.float32)
+  return _quad_start(corners, SIZE)
 
 
 def _corner_error(h, origin=ORIGIN, size: int = SIZE) -> float:
@@ -545,11 +550,6 @@ def test_retry_scale_sizes_align_s_retry_alone():
   search = config.swarm_size * config.max_iterations
   assert spent[(3, 3)] - spent[(1, 3)] > 6 * search, spent  # 9 against 1 search's worth (7.6)
   assert spent[(3, 1)] == spent[(3, 3)], spent
-
-
-def _quad_start(corners, size: int = 100):
-  """(3, 3) the start mapping a size×size template's corners to `corners` (4, 2)."""
-  return cv2.getPerspectiveTransform(_square(size), np.float32(corners)).astype(np.float32)
 
 
 def test_the_start_is_refined_from_the_coarsest_level_first():
