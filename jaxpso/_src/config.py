@@ -83,9 +83,10 @@ class TrackConfig:
     max_iterations (int): PSO iterations at most (a baseline's per level).
     quick_iterations (int): `align`'s search first runs one swarm of this
       many iterations, then where that falls short a second one on other
-      seeds; a quick search's refined best is the result where it reaches
-      `retry_quality` or agrees within 1 px with the best so far on a
-      quality of at least 0.8, and only otherwise the search of
+      seeds (one pyramid level finer where the first disagreed with the
+      start's refinements); a quick search's refined best is the result
+      where it reaches `retry_quality` or agrees within 1 px with the best
+      so far on a quality of at least 0.8, and only otherwise the search of
       `max_iterations` runs.  0 skips them.  Whatever the quality, `align`
       also settles on its best once three of its estimates (Gauss–Newton
       from the start at two levels, each search's) agree with it within
