@@ -91,10 +91,11 @@ class TrackConfig:
       also settles on its best once three of its estimates (Gauss–Newton
       from the start at two levels, each search's) agree with it within
       2 px: noise or a real change of appearance keeps a right match's
-      quality far under the thresholds.  `track` runs one quick search
-      where the start falls short, and the full search only where that is
+      quality far under the thresholds.  `track` runs a quick search
+      where the start falls short, a second one (other seeds) where that is
       neither accepted nor, not lost, confirmed by both starts (within
-      1 px) or by the starts' best on a quality of at least 0.8.
+      1 px) or by the best so far on a quality of at least 0.8, and the
+      full search only where the second falls short the same way.
     patience (int | None): PSO stagnation stop (None disables).
     variant (str): PSO variant (`jaxpso.pso.VARIANTS`).
     topology (str): PSO topology (`jaxpso.pso.TOPOLOGIES`).

@@ -400,9 +400,9 @@ def _advance_track(state: State, found: problems.Candidate, contexts: problems.C
          & (reference >= _MIN_REFERENCE))
   agree = _agrees(found, state.best, contexts)
   accepted = accepted & ~((stage <= _T_COARSER) & far & ~((stage == _T_COARSER) & agree))
-  # The quick search settles a frame as align's searches do, if the match is
-  # not lost: the starts' two refinements and the quick search agreeing
-  # (`_VOTES`), or the quick search agreeing with the starts' best on a
+  # A quick search settles a frame as align's searches do, if the match is
+  # not lost: _VOTES of the starts' two refinements and the quick searches
+  # agreeing, or a quick search agreeing with the best so far on a
   # quality of at least _MIN_REFERENCE, spare the full search on a frame the
   # start alone did not settle (a jump, blur, the first frames before a
   # search set the reference; video.py's grass and gravel: the start 6-7 px
