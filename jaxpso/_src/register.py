@@ -147,8 +147,8 @@ class Stage:
     swarm: run the swarm first (else start from u = 0).
     quick: one swarm of `quick_iterations` iterations (align's quick search).
     finer: the swarm searches one level finer than the coarsest.
-    finer_if_disputed: ... and so it does where the best so far is not
-      `confirmed` (the previous search disagreed with it).
+    finer_if_disputed: the swarm searches one level finer where the best
+      so far is not `confirmed` (the previous search disagreed with it).
     wide: `recovery_scale` swarms of `recovery_scale` × the iterations,
       other seeds (track's recovery); with `retry`, `retry_scale` (align's
       retry).
