@@ -182,7 +182,7 @@ def _bm_error(image, origin, moved, config, key=0):
 
   The template is IMAGE's at origin (x, y); moved (4, 2) the start's corners.
   """
-  source = np.float32([[0, 0], [99, 0], [99, 99], [0, 99]])
+  source = _square(100)
   x, y = origin
   start = cv2.getPerspectiveTransform(source, np.float32(moved))
   result = jaxpso.align(image, IMAGE[y:y + 100, x:x + 100], start, config=config, key=key)

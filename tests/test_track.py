@@ -76,6 +76,13 @@ def _tracked(config: jaxpso.TrackConfig, name: str):
   return result, programs_made() - before
 
 
+def _jump_sequence(seed: int) -> jaxpso.synthetic.Sequence:
+  """benchmarks/tracking.py's sequence: 200 frames (lazy), jumps at 66 and 133, gain drift 0.1,
+  noise 0.01."""
+  return jaxpso.synthetic.make_sequence(seed, num_frames=200, jumps=(66, 133), gain_drift=0.1,
+                                        noise=0.01, lazy=True)
+
+
 def _corner_rms(corners, truth) -> np.ndarray:
   """(T,) root-mean-square distance between the estimated and the true 4 corners."""
   return np.sqrt(np.mean(np.sum((np.asarray(corners) - truth) ** 2, axis=-1), axis=-1))
@@ -552,8 +559,7 @@ def test_plane_tracking_with_prediction_does_not_drift(seed):
   # benchmark's) the corners left 1 px at frame 17-18 and 5 px later, every
   # frame TRACKED.  The prediction now carries half the motion.
   frames = 24
-  sequence = jaxpso.synthetic.make_sequence(seed, num_frames=200, jumps=(66, 133), gain_drift=0.1,
-                                            noise=0.01, lazy=True)
+  sequence = _jump_sequence(seed)
   config = jaxpso.TrackConfig(motion="plane", dof=6, predict=True)
   result = jaxpso.track(np.stack(list(itertools.islice(sequence.frames, frames))), sequence.roi,
                         config=config, key=seed, camera=sequence.camera,
@@ -600,8 +606,7 @@ def test_a_jump_is_settled_by_the_quick_search_not_the_full_one():
   # refined best reaches the quality the last search set, so the frame is
   # accepted without the full search (measured 360 evaluations, 0.07 px;
   # with quick_iterations=0 the full search spends 1 383).
-  sequence = jaxpso.synthetic.make_sequence(0, num_frames=200, jumps=(66, 133), gain_drift=0.1,
-                                            noise=0.01, lazy=True)
+  sequence = _jump_sequence(0)
   frames = np.stack(list(itertools.islice(sequence.frames, 70)))
   result = jaxpso.track(frames, sequence.roi)
   errors = _corner_rms(result.corners, sequence.corners[:70])
@@ -618,8 +623,7 @@ def test_a_second_quick_search_finds_a_jump_the_first_one_missed(key):
   # the quick search lands at quality 0.41, and the full search used to
   # find the region (1 694 evaluations, 10-15x the median frame's time); a
   # second quick search on other seeds finds it (measured 670-671).
-  sequence = jaxpso.synthetic.make_sequence(1, num_frames=200, jumps=(66, 133), gain_drift=0.1,
-                                            noise=0.01, lazy=True)
+  sequence = _jump_sequence(1)
   frames = np.stack(list(itertools.islice(sequence.frames, 136)))
   result = jaxpso.track(frames, sequence.roi, key=key)
   errors = _corner_rms(result.corners, sequence.corners[:136])
