@@ -123,6 +123,17 @@ def trials(count: int, sigma: float, seed: int):
     yield name, origin, cv2.getPerspectiveTransform(SOURCE, start).astype(np.float32)
 
 
+def trial_images(images: dict, condition: str, sigma: float, count: int, offset: int = 0):
+  """(i, origin, image, template, start) of each trial of (condition, σ); `offset` shifts the
+  trials' seeds (0: the committed trials)."""
+  change = CONDITIONS[condition][1]
+  for i, (name, origin, start) in enumerate(trials(count, sigma, int(sigma) * 7 + offset)):
+    x, y = int(origin[0]), int(origin[1])
+    template = images[name][y:y + SIZE, x:x + SIZE]
+    image = change(images[name], np.random.default_rng([int(sigma), i + offset]))
+    yield i, origin, image.astype(np.float32), template, start
+
+
 def run_ecc(image, template, start, iterations: int = ECC_ITERATIONS):
   criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-6)
   try:
@@ -187,17 +198,12 @@ def measure(methods: dict, conditions, sigmas, count: int, images, log):
   """One row per (condition, σ, method): success, median error, time and evaluations."""
   rows, agreement = [], []
   for condition in conditions:
-    change = CONDITIONS[condition][1]
     for sigma in sigmas:
       errors = {name: [] for name in methods}
       seconds = {name: [] for name in methods}
       evaluations = {name: [] for name in methods}
       rejected = {name: 0 for name in methods}
-      for i, (name, origin, start) in enumerate(trials(count, sigma, int(sigma) * 7)):
-        x, y = int(origin[0]), int(origin[1])
-        template = images[name][y:y + SIZE, x:x + SIZE]
-        rng = np.random.default_rng([int(sigma), i])
-        image = change(images[name], rng).astype(np.float32)
+      for i, origin, image, template, start in trial_images(images, condition, sigma, count):
         found = {}
         for method, (config, iterations) in methods.items():
           if config is None:
