@@ -81,14 +81,17 @@ def trace(image, template, start, key, config, error) -> dict | None:
   """One alignment's stages: (stage, quality, homography, best quality, best error, evaluations)."""
   _LOG.clear()
   try:
-    result = jaxpso.align(image, template, start, config=config, key=key)
+    result = jax.block_until_ready(jaxpso.align(image, template, start, config=config, key=key))
   except ValueError:  # a start the horizon cuts (convergence.py counts it a failure)
     return None
+  jax.effects_barrier()  # every stage's callback has run
   x, y, _, _ = aligning._window(np.asarray(start, np.float64), template.shape, image.shape,
                                 config.for_template(template.shape))
   shift = np.array([[1, 0, x], [0, 1, y], [0, 0, 1]], np.float64)
   stages = [(int(s), float(q), shift @ h.astype(np.float64), float(bq),
              error(shift @ bh.astype(np.float64)), int(e)) for s, q, h, bq, bh, e in _LOG]
+  if sum(stage[5] for stage in stages) != int(result.num_evaluations):
+    raise RuntimeError("the recorded stages do not add up to the call's evaluations")
   return {"stages": stages, "error": error(np.asarray(result.homography, np.float64)),
           "evaluations": int(result.num_evaluations)}
 
