@@ -19,8 +19,9 @@ Replaying: a trial stops after the first stage where the rule holds, and
 keeps the best so far. `RULES` holds the rules as built, a test of the
 best's quality against the other estimates' ("a peak clear of its
 rivals") after the full search, two agreeing estimates at the first quick
-search with the third far below, and giving up below a quality after the
-quick searches. Per rule the report gives the convergence trials lost and
+search with the third far below, giving up below a quality after the
+quick searches, and smaller evaluation budgets than the default 20 000
+(`TrackConfig.max_evaluations`). Per rule the report gives the convergence trials lost and
 gained against the recorded end (each set), and per runtime case the
 success and median / p90 / p99 / max evaluations. Evaluations are
 deterministic, so no timing is needed.
@@ -152,6 +153,11 @@ def hopeless_after_quick(quality: float):
   return lambda stages: stages[-1][0] == register._QUICK_AGAIN and stages[-1][3] < quality
 
 
+def budget(evaluations: int):
+  """`TrackConfig.max_evaluations` = `evaluations`: no stage starts once that many are spent."""
+  return lambda stages: sum(stage[5] for stage in stages) >= evaluations
+
+
 RULES = {
     "as built": lambda stages: False,
     "clear peak after the search, margin 0.10": clear_peak(0.10),
@@ -159,6 +165,7 @@ RULES = {
     "two votes at the first quick search, third 0.30 under": two_votes_at_quick(0.30),
     "two votes at the first quick search, third 0.45 under": two_votes_at_quick(0.45),
     "give up under 0.3 after the quick searches": hopeless_after_quick(0.3),
+    **{f"a budget of {b} evaluations": budget(b) for b in (4000, 8000, 12000)},
 }
 
 
