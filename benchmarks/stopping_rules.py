@@ -50,7 +50,7 @@ from jaxpso._src import align as aligning
 from jaxpso._src import register
 
 SIGMAS = (2, 4, 8, 12, 16, 20)
-VOTE_PX = 2.0  # register._ALIGN_VOTE_PX
+VOTE_PX = register._ALIGN_VOTE_PX  # align counts a vote within this many pixels
 _SQUARE = np.array([[0, 0, 1], [99, 0, 1], [99, 99, 1], [0, 99, 1]], np.float64)
 _LOG: list = []
 
@@ -116,9 +116,9 @@ def record(similarity: str, trials: int, holdout: int, cases: int) -> dict:
   photos = [common.photo(name) for name in common.PHOTOS]
   by_case = {}
   for case in ("clean", "gamma", "shading", "noise", "inverted", "real_pairs"):
-    by_case[case] = [trace(image, template, start, 0, config,
-                           lambda h, t=truth: runtime._corner_rms(h, t))
-                     for image, template, start, truth in runtime.case_trials(case, photos, cases)]
+    rows = [trace(image, template, start, 0, config, lambda h, t=truth: runtime._corner_rms(h, t))
+            for image, template, start, truth in runtime.case_trials(case, photos, cases)]
+    by_case[case] = [row for row in rows if row is not None]
   return {"convergence": sets, "cases": by_case}
 
 
