@@ -217,8 +217,8 @@ def test_a_quick_search_that_finds_the_match_spares_the_full_search():
 
 def test_a_second_quick_search_looks_one_level_finer_where_the_first_disagreed():
   # convergence.py, no change, σ 20, trial 49: at the coarsest level the quick
-  # searches, the search and two retries all miss (35 px off at quality 0.47,
-  # 12 344 evaluations); one level finer the second quick search finds the
+  # searches, the search and two retries all miss (21.6 px corner RMS off at
+  # quality 0.47, 12 344 evaluations); one level finer the second quick search finds the
   # match (667 evaluations in all).  The start also moved by 0.01 px: which
   # basin a swarm falls in hangs on such details (5 of these 6 found with a
   # finer second search, none without).
