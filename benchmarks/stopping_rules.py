@@ -51,7 +51,7 @@ from jaxpso._src import register
 
 SIGMAS = (2, 4, 8, 12, 16, 20)
 VOTE_PX = register._ALIGN_VOTE_PX  # align counts a vote within this many pixels
-_SQUARE = np.array([[0, 0, 1], [99, 0, 1], [99, 99, 1], [0, 99, 1]], np.float64)
+_SQUARE = np.c_[convergence.SOURCE, np.ones(4)]  # the 100×100 template's corners, homogeneous
 _LOG: list = []
 
 
