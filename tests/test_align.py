@@ -146,6 +146,7 @@ def test_a_template_outside_the_image_reports_no_valid_warp():
   result = jaxpso.align(IMAGE, TEMPLATE, far, config=CONFIG)
   assert int(result.status) == jaxpso.AlignStatus.NO_VALID_WARP
   assert not np.isnan(np.asarray(result.homography)).any()
+  assert float(result.quality) == -np.inf and float(result.visible) == 0.0  # as documented
 
 
 @pytest.mark.parametrize("call, name", [

@@ -79,6 +79,34 @@ def test_detect_correlates_the_whole_template_where_its_middle_is_flat(scene, si
   assert _error(found.homography, truth, 84) < 0.5  # measured 0.33
 
 
+def test_detect_judges_the_inner_square_of_an_elongated_template(scene):
+  """A 24×110 strip whose middle is plain (a sign's blank centre): the inner square correlated
+  is the 16 px one at its centre, flat, so the whole strip is correlated.  Judged over the
+  strip less its rim instead (which is textured), every map of the flat square was skipped
+  and `detect` found no place at all (a ValueError)."""
+  _, background = scene
+  template = jaxpso.data.load_image("camera")[150:174, 180:290].copy()
+  template[:, 40:70] = template.mean()
+  rect = np.array([[0, 0], [109, 0], [109, 23], [0, 23]], np.float32)
+  a = np.radians(35.0)
+  rotation = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+  corners = (rect - [54.5, 11.5]) * 1.3 @ rotation.T + [170.0, 115.0]
+  truth = cv2.getPerspectiveTransform(rect, corners.astype(np.float32))
+  found = jaxpso.detect(_frame(template, truth, background), template)
+  a, b = (cv2.perspectiveTransform(rect[None].astype(np.float64), np.asarray(h, np.float64))[0]
+          for h in (found.homography, truth))
+  assert np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))) < 0.5
+
+
+def test_detect_says_why_it_finds_no_place(scene):
+  """A template textured only at the finest scale (a 1 px checkerboard, std 0.02) is flat once
+  low-passed to be shrunk: no map can be correlated, and the error says why."""
+  _, background = scene
+  template = (0.5 + 0.02 * (-1.0) ** np.add.outer(np.arange(40), np.arange(40))).astype(np.float32)
+  with pytest.raises(ValueError, match="no place to be matched.*flat"):
+    jaxpso.detect(background, template, scales=(0.5, 0.6))
+
+
 def test_detect_reports_a_missing_template_by_its_quality(scene):
   template, background = scene
   found = jaxpso.detect(background, template)

@@ -58,7 +58,10 @@ class AlignResult(NamedTuple):
     homography: (3, 3) template → image homography, h[2, 2] = 1.
     score: () the similarity at it (an error for "ssd", else higher is better).
     quality: () the score relative to the template's own (`problem.quality`):
-      about 1 for a match, lower the worse.
+      about 1 for a match, lower the worse.  Where too few template pixels
+      fall inside the image to score any warp (status `NO_VALID_WARP`: a
+      start that puts the template outside it), score is +inf ("ssd") or
+      −inf and quality −inf; never NaN.
     status: () int32 `AlignStatus`.
     num_iterations: () int32 PSO iterations plus refinement steps.
     num_evaluations: () int32 swarm evaluations (particles × iterations) plus

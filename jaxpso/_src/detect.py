@@ -145,7 +145,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
 
   rows, cols = template.shape
   disc = min(rows, cols) / math.sqrt(2.0)  # the side of the square inside the inscribed disc
-  margin = int((min(rows, cols) - disc) / 2)  # the rim around the inner square
+  top, left = (int((n - disc) / 2) for n in (rows, cols))  # the inner square's corner
   levels = [np.ascontiguousarray(image, np.float32)]
   lowpassed = {}  # sigma → (low-passed template, flat middle), shared by its rotations
 
@@ -156,7 +156,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
     sigma = sigma if sigma > 0.3 else 0.0
     if sigma not in lowpassed:
       blurred = cv2.GaussianBlur(template, (0, 0), sigma) if sigma else template
-      middle = blurred[margin:rows - margin, margin:cols - margin]
+      middle = blurred[top:rows - top, left:cols - left]
       lowpassed[sigma] = blurred, float(np.std(middle)) < _FLAT_MIDDLE * float(np.std(blurred))
     return lowpassed[sigma]
 
@@ -359,6 +359,7 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
     if float(found.quality) >= accept:
       break
   if best is None:
-    raise ValueError(f"template of shape {patch.shape} at scales {scales} does not fit image of"
-                     f" shape {picture.shape}")
+    raise ValueError(f"template of shape {patch.shape} has no place to be matched in image of"
+                     f" shape {picture.shape} at scales {scales}: it does not fit, or what is"
+                     f" correlated of it is flat at every scale")
   return best
