@@ -89,6 +89,20 @@ def test_fit_line_finds_the_blur_of_a_frame_at_the_template():
   assert blur.fit_line(frame, template, outside, either_sign=False)[1] == -1.0
 
 
+@pytest.mark.parametrize("rows, cols", [(99, 100), (100, 97), (51, 58)])
+def test_fit_line_takes_a_template_of_odd_sides(rows, cols):
+  """Halved, an odd side's even and odd pixels differ in number; the mask of the pixels inside
+  was combined from both and failed to broadcast (a ValueError from NumPy, raised through
+  `track` wherever it fitted a blur to a region of odd side that it had lost)."""
+  line = 8.0 * np.array([np.cos(0.5), np.sin(0.5)])
+  frame, template = _blurred_brick(line)
+  at = np.array([[1.0, 0, 120], [0, 1, 70], [0, 0, 1]])
+  fitted, score = blur.fit_line(frame, template[:rows, :cols], at, either_sign=False)
+  np.testing.assert_allclose(np.abs(fitted), [8 * np.cos(np.pi / 6), 8 * np.sin(np.pi / 6)],
+                             atol=1e-6)
+  assert score > 0.99, score
+
+
 @pytest.mark.parametrize("similarity", ["mi", "ncc"])
 def test_detect_with_motion_blur_finds_a_blurred_template(similarity):
   # 8 px of blur on a fine brick texture: the sharp template's best place
@@ -120,6 +134,17 @@ def test_track_follows_a_sudden_shake_by_the_blur_it_fits(similarity):
   result = jaxpso.track(frames, roi, config=jaxpso.TrackConfig(similarity=similarity))
   errors = np.sqrt(np.mean(np.sum((result.corners - (box + shifts[:, None])) ** 2, -1), -1))
   assert not np.any(result.status == jaxpso.TrackStatus.LOST), result.status
+  assert result.status[4] == jaxpso.TrackStatus.RECOVERED, result.status
+  assert errors.max() < 0.3, errors
+
+
+def test_track_fits_the_blur_of_a_region_of_odd_sides():
+  """The shake above with a 99×101 region: `track` raised NumPy's broadcast error from the blur
+  fit (`test_fit_line_takes_a_template_of_odd_sides`)."""
+  frames, shifts = _blurred_pan([0.5, 0.5, 0.5, 16, 16, 16, 0.5, 0.5], 2.2)
+  result = jaxpso.track(frames, (110, 70, 99, 101), config=jaxpso.TrackConfig(similarity="ncc"))
+  box = np.array([[110, 70], [208, 70], [208, 170], [110, 170]], np.float64)
+  errors = np.sqrt(np.mean(np.sum((result.corners - (box + shifts[:, None])) ** 2, -1), -1))
   assert result.status[4] == jaxpso.TrackStatus.RECOVERED, result.status
   assert errors.max() < 0.3, errors
 

@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 import jaxpso
+from jaxpso._src import detect as detection
 
 FRAME = (240, 320)  # rows, columns
 
@@ -168,6 +169,19 @@ def test_track_redetects_a_region_that_reappears_far_away(scene):
 
   without = jaxpso.track(frames, roi, config=jaxpso.TrackConfig(redetect=False))
   assert np.all(without.status[7:] == jaxpso.TrackStatus.LOST)  # out of the recovery's reach
+
+
+def test_track_keeps_a_region_lost_where_detect_finds_no_place(scene, monkeypatch):
+  """Where `detect` can correlate no map (a template flat at every scale it is matched at:
+  `test_detect_says_why_it_finds_no_place`), its search finds nothing and the region stays
+  LOST; `track` raised `detect`'s ValueError instead."""
+  frames, _ = _jump_sequence(scene)
+  searched = []
+  monkeypatch.setattr(detection, "search", lambda *args: searched.append(args[3]))
+  result = jaxpso.track(frames, (40, 30, 80, 80))
+  assert np.all(result.status[5:] == jaxpso.TrackStatus.LOST)
+  assert searched == list(range(5, 12))  # detect ran on every LOST frame
+  assert np.all(np.isfinite(result.homographies))
 
 
 def test_redetect_must_be_a_bool():

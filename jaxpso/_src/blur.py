@@ -137,8 +137,11 @@ def fit_line(frame: np.ndarray, template: np.ndarray, h: np.ndarray, either_sign
     return np.zeros(2), coarse
   # Fitted at half resolution (a quarter of the cost), both halved alike.
   template, back = cv2.pyrDown(template), cv2.pyrDown(back)
-  inside = inside[::2, ::2] & inside[1::2, 1::2][:template.shape[0], :template.shape[1]]
-  inside = np.pad(inside, [(0, n - m) for n, m in zip(template.shape, inside.shape)])
+  # A halved pixel is inside where its even and odd source pixels are; an odd side's last one
+  # has no odd partner and counts as outside.
+  even, odd = inside[::2, ::2], inside[1::2, 1::2]
+  inside = np.zeros(template.shape, bool)
+  inside[:odd.shape[0], :odd.shape[1]] = even[:odd.shape[0], :odd.shape[1]] & odd
   lines = [np.zeros(2)] + [length * np.array([np.cos(a), np.sin(a)])
                            for length in LINE_LENGTHS_PX
                            for a in np.radians(np.arange(0.0, 180.0, LINE_ANGLE_STEP))]

@@ -330,17 +330,23 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
   for name, flag in (("motion_blur", motion_blur), ("partial", partial)):
     if not isinstance(flag, bool):
       raise ValueError(f"{name} must be a bool, got {flag!r}")
-  return search(picture, patch, config, key, scales, angles, candidates_tried,
-                -math.inf if motion_blur else None, (scales, angles) if partial else None)
+  found = search(picture, patch, config, key, scales, angles, candidates_tried,
+                 -math.inf if motion_blur else None, (scales, angles) if partial else None)
+  if found is None:
+    raise ValueError(f"template of shape {patch.shape} has no place to be matched in image of"
+                     f" shape {picture.shape} at scales {scales}: it does not fit, or what is"
+                     f" correlated of it is flat at every scale")
+  return found
 
 
 def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, scales, angles,
            candidates_tried: int, blurred_from: float | None,
-           partial=None) -> AlignResult:
+           partial=None) -> AlignResult | None:
   """`detect` on checked input: picture (H, W) and patch (h, w) float32 grey; `blurred_from`:
   a candidate's smeared alignment (`blur.register_fitted`) counts where its quality reaches
   this, None: none is tried; `partial`: the (scales, angles) ranges of the places partly
-  outside the image also searched (`candidates`), None: none."""
+  outside the image also searched (`candidates`), None: none.  None where no place could be
+  correlated (the template does not fit, or is flat at every scale)."""
   either_sign = _EITHER_SIGN[config.similarity]
   starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign, partial)
   quick = bounded(config)
@@ -358,8 +364,4 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
       best = found
     if float(found.quality) >= accept:
       break
-  if best is None:
-    raise ValueError(f"template of shape {patch.shape} has no place to be matched in image of"
-                     f" shape {picture.shape} at scales {scales}: it does not fit, or what is"
-                     f" correlated of it is flat at every scale")
   return best

@@ -416,11 +416,12 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
       continue
     smeared_from = float(before.reference[r]) - _margin(config)
     left = _reentry_ranges(recent.tracked[r], shape, images[r].shape)
-    whole = None  # `detect`'s result on this frame and its visible share, once run
+    detected = False  # `detect` run on this frame: `whole` its result (None: no place), `share`
     if r in doubt and out["status"][r] != TrackStatus.LOST:
       whole, share = _detected(images[r], templates_[r], config, index, smeared_from, left,
                                peak[r] - _margin(config))
-      if (float(whole.quality) >= out["quality"][r] + _margin(config)
+      detected = True
+      if (whole is not None and float(whole.quality) >= out["quality"][r] + _margin(config)
           and _corner_distance(whole.homography, out["homography"][r], shape) > _PART_REACH_PX):
         found[r], shares[r] = (whole, TrackStatus.RECOVERED), share
         if float(whole.quality) >= peak[r] - _margin(config):
@@ -456,10 +457,10 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
           and _corner_distance(smeared.homography, recent.homography[r], shape) <= reach):
         found[r], shares[r] = (smeared, TrackStatus.TRACKED), share
         continue
-    if whole is None:
+    if not detected:
       whole, share = _detected(images[r], templates_[r], config, index, smeared_from, left,
                                peak[r] - _margin(config))
-    if float(whole.quality) >= config.lost_threshold:
+    if whole is not None and float(whole.quality) >= config.lost_threshold:
       found[r], shares[r] = (whole, TrackStatus.RECOVERED), share
       if float(whole.quality) < peak[r] - _margin(config):
         doubt[r] = index + _DOUBT_FRAMES, float(peak[r])
@@ -544,9 +545,12 @@ def _detected(image: np.ndarray, template: np.ndarray, config: TrackConfig, inde
   """(`detect`'s `AlignResult`, visible share) for a template in a frame (frame `index` seeds
   it), a smeared match (motion blur) counting from the quality `blurred_from`; `partial`:
   `_reentry_ranges`'s (scales, angles) or None.  A match less than `_MIN_IN_FRAME` inside
-  the frame is `_confirmed_part` at `least`."""
+  the frame is `_confirmed_part` at `least`.  (None, 0) where no place could be correlated
+  (a template flat at every scale `detect` matches it at)."""
   found = detection.search(image, template, config, index, detection.SCALES, detection.ANGLES,
                            detection.CANDIDATES, blurred_from, partial)
+  if found is None:
+    return None, 0.0
   if _inside_share(found.homography, template.shape, image.shape) >= _MIN_IN_FRAME:
     return found, 1.0
   return _confirmed_part(image, template, found, detection.bounded(config), index,
