@@ -331,7 +331,10 @@ def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
   Non-finite losses never become a best; if no finite loss was ever seen the
   status is `Status.NON_FINITE`.  The same key gives a bit-identical result.
   Compiled once per (loss_fn, `config.static()`, shapes): new `args`,
-  bounds, `hparams` or termination settings do not recompile.
+  bounds, `hparams` or termination settings do not recompile.  JAX keeps
+  every program; on a CPU about 600 of them exhaust Linux's memory-map
+  limit (benchmarks/results/program_memory.md), so a larger sweep calls
+  `jax.clear_caches()` between groups.
 
   Args:
     key: PRNG key or int seed.
