@@ -81,7 +81,7 @@ def scene(rng, images: dict, supersample: int = 1, aspect: float = 1.0):
   rows, cols = template_shape(rng, aspect)
   if rows > min(picture.shape[0], FRAME[0]) or cols > min(picture.shape[1], FRAME[1]):
     return scene(rng, images, supersample, aspect)  # detect takes none larger than the frame
-  if rows == cols:
+  if rows == cols:  # the draw of the committed square trials (detection.md reproduces)
     y, x = rng.integers(0, picture.shape[0] - rows + 1, 2)
   else:
     y, x = (int(rng.integers(0, n - m + 1)) for n, m in zip(picture.shape, (rows, cols)))
@@ -104,8 +104,8 @@ def scene(rng, images: dict, supersample: int = 1, aspect: float = 1.0):
       continue
     low = -moved.min(axis=0) + 2
     high = np.array([FRAME[1], FRAME[0]]) - moved.max(axis=0) - 3
-    corners_ = moved + rng.uniform(low, high)
-    truth = cv2.getPerspectiveTransform(rect.astype(np.float32), corners_.astype(np.float32))
+    placed = moved + rng.uniform(low, high)
+    truth = cv2.getPerspectiveTransform(rect.astype(np.float32), placed.astype(np.float32))
     break
   else:
     return scene(rng, images, supersample, aspect)

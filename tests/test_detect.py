@@ -13,17 +13,21 @@ FRAME = (240, 320)  # rows, columns
 
 
 def _rect(side):
-  return np.array([[0, 0], [side - 1, 0], [side - 1, side - 1], [0, side - 1]], np.float64)
+  """(4, 2) corners TL, TR, BR, BL of a side×side template, or of a (rows, cols) one."""
+  rows, cols = (side, side) if np.isscalar(side) else side
+  return np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]], np.float64)
 
 
 def _placed(side, centre, scale, angle_deg, tilt=None):
-  """(3, 3) homography putting a side×side template at `centre`, rotated, scaled, tilted."""
+  """(3, 3) homography putting a side×side (or (rows, cols)) template at `centre`, rotated,
+  scaled, tilted."""
   a = np.radians(angle_deg)
   rotation = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-  corners = (_rect(side) - (side - 1) / 2) * scale @ rotation.T + centre
+  rect = _rect(side)
+  corners = (rect - rect.mean(axis=0)) * scale @ rotation.T + centre
   if tilt is not None:
     corners = corners + tilt
-  return cv2.getPerspectiveTransform(_rect(side).astype(np.float32), corners.astype(np.float32))
+  return cv2.getPerspectiveTransform(rect.astype(np.float32), corners.astype(np.float32))
 
 
 def _frame(template, truth, background, hidden=False):
@@ -88,15 +92,9 @@ def test_detect_judges_the_inner_square_of_an_elongated_template(scene):
   _, background = scene
   template = jaxpso.data.load_image("camera")[150:174, 180:290].copy()
   template[:, 40:70] = template.mean()
-  rect = np.array([[0, 0], [109, 0], [109, 23], [0, 23]], np.float32)
-  a = np.radians(35.0)
-  rotation = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-  corners = (rect - [54.5, 11.5]) * 1.3 @ rotation.T + [170.0, 115.0]
-  truth = cv2.getPerspectiveTransform(rect, corners.astype(np.float32))
+  truth = _placed(template.shape, np.array([170.0, 115.0]), 1.3, 35.0)
   found = jaxpso.detect(_frame(template, truth, background), template)
-  a, b = (cv2.perspectiveTransform(rect[None].astype(np.float64), np.asarray(h, np.float64))[0]
-          for h in (found.homography, truth))
-  assert np.sqrt(np.mean(np.sum((a - b) ** 2, axis=1))) < 0.5
+  assert _error(found.homography, truth, template.shape) < 0.5
 
 
 def test_detect_says_why_it_finds_no_place(scene):
