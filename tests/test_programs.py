@@ -1,5 +1,6 @@
 """`programs`: jaxpso's programs compiled once, kept in memory (LRU) and on disk across processes."""
 
+import dataclasses
 import functools
 import gc
 import hashlib
@@ -17,6 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxpso import pso
 from jaxpso._src import programs
 
 
@@ -336,3 +338,27 @@ def test_the_least_recently_used_entries_go_beyond_the_size_bound(cache, monkeyp
   _affine(*_data(n=8))
   remaining = _entries(cache)
   assert len(remaining) == 2 and first in remaining and second not in remaining
+
+
+@dataclasses.dataclass(frozen=True)
+class _Shifted:
+  """A loss whose `repr` names no address: its code could change under the same `repr`."""
+  shift: float
+
+  def __call__(self, x, args):
+    return jnp.sum((x - self.shift) ** 2)
+
+
+def test_swarm_programs_are_bounded_and_stay_in_memory(cache):
+  programs.set_max_programs(2)
+  config = pso.PSOConfig(swarm_size=8, max_iterations=5, patience=None)
+  loss = _Shifted(0.5)
+  before = programs.counts()
+  for d in (1, 2, 3):
+    pso.run(0, loss, -jnp.ones(d), jnp.ones(d), config=config)
+  pso.trace(0, loss, -jnp.ones(1), jnp.ones(1), config=config)
+  assert _delta(before)["compiled"] == 4 and len(programs._table) == 2
+  result = pso.run(0, loss, -jnp.ones(1), jnp.ones(1), config=config)  # evicted: compiled again
+  assert _delta(before)["compiled"] == 5
+  assert abs(float(result.x[0]) - 0.5) < 0.5
+  assert _entries(cache) == []  # the user's function is not part of a disk key

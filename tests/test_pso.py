@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 
 from jaxpso import pso
-from jaxpso._src.pso import _run
+from jaxpso._src import programs as compiled_programs
 from jaxpso._src.pso import _run_impl
 from jaxpso._src.swarm_random import _as_seed
 from jaxpso._src.swarm_random import _uniform
@@ -489,12 +489,12 @@ def test_every_status_from_one_compiled_program():
       (dict(target_loss=1.0), pso.Status.TARGET_REACHED, 0),
       (dict(max_iterations=30, tolerance=0.5, target_loss=0.5), pso.Status.MAX_ITERATIONS, 30),
   ]
-  programs = _run._cache_size()
+  programs = compiled_programs.counts()["compiled"]
   for changes, status, iterations in cases:
     result = pso.run(0, _constant, LOWER, UPPER, None, config=dataclasses.replace(base, **changes))
     assert (int(result.status), int(result.num_iterations)) == (status, iterations), changes
     assert int(result.num_evaluations) == 8 * (iterations + 1)
-  assert _run._cache_size() - programs <= 1  # none if another test compiled it already
+  assert compiled_programs.counts()["compiled"] - programs <= 1  # none if compiled already
 
 
 # ------------------------------------------------------------- non-finite
@@ -681,7 +681,7 @@ def test_new_args_bounds_or_hparams_do_not_recompile():
 def test_new_termination_settings_do_not_recompile():
   config = dataclasses.replace(CFG, swarm_size=12)  # a program of its own
   first = pso.run(0, _counted_sphere, LOWER, UPPER, SHIFT, config=config)
-  traces, programs = _TRACES[0], _run._cache_size()
+  traces, programs = _TRACES[0], compiled_programs.counts()["compiled"]
   cases = [
       (dict(max_iterations=25), pso.Status.MAX_ITERATIONS),
       (dict(patience=3, tolerance=0.5), pso.Status.STAGNATED),
@@ -695,7 +695,7 @@ def test_new_termination_settings_do_not_recompile():
   # The settings were used, not those of the compiling call.
   assert int(result.num_iterations) == 20  # 2 · t / 40 >= 1
   _assert_same_result(first, pso.run(0, _counted_sphere, LOWER, UPPER, SHIFT, config=config))
-  assert (_TRACES[0], _run._cache_size()) == (traces, programs)
+  assert (_TRACES[0], compiled_programs.counts()["compiled"]) == (traces, programs)
   # `trace` takes them at runtime too, except max_iterations: its scan length.
   pso.trace(0, _counted_sphere, LOWER, UPPER, SHIFT, config=config)
   traces = _TRACES[0]

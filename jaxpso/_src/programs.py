@@ -21,7 +21,8 @@ corrupt one is a warning, removed and compiled afresh.  The least recently
 used entries go once the entries exceed `$JAXPSO_CACHE_MAX_BYTES` (2 GiB).
 Only programs on the default device are written: a program sharded over
 several devices, taking a static argument whose `repr` is an address (a
-function) or defined inside a function stays in memory only.
+function), defined inside a function or made with `stored=False` (`pso.run`'s,
+whose loss is the user's function) stays in memory only.
 
 Matrix products are traced in float32 (`MATMUL_PRECISION`), never in an
 accelerator's faster TensorFloat-32 or bfloat16 passes.  Compiler options:
@@ -98,10 +99,14 @@ class Program:
   Args:
     fun: the function.
     static_argnames: the names of `fun`'s static keyword arguments.
+    stored: whether its programs may go to the disk cache; False where a
+      static argument is a user's function, whose `repr` need not change
+      when its code does.
   """
 
-  def __init__(self, fun, *, static_argnames: tuple[str, ...] | str = ()):
+  def __init__(self, fun, *, static_argnames: tuple[str, ...] | str = (), stored: bool = True):
     self._fun = fun
+    self._stored = stored
     self._static = (static_argnames,) if isinstance(static_argnames, str) else tuple(static_argnames)
     self._static_set = frozenset(self._static)
     parameters = inspect.signature(fun).parameters
@@ -137,14 +142,15 @@ class Program:
     default = _default_sharding(config[-1])
     types = []
     for leaf in leaves:
-      if isinstance(leaf, np.ndarray):
+      if isinstance(leaf, (np.ndarray, np.generic)):
         types.append((leaf.shape, leaf.dtype, False, None))
       elif isinstance(leaf, jax.core.Tracer):
         return None
-      elif isinstance(leaf, jax.Array):
+      elif isinstance(leaf, jax.Array):  # typed PRNG keys have no weak_type
         placement = leaf.sharding
-        types.append((leaf.shape, leaf.dtype, leaf.weak_type, None if placement == default else placement))
-      else:  # Python and NumPy scalars
+        types.append((leaf.shape, leaf.dtype, getattr(leaf, "weak_type", False),
+                      None if placement == default else placement))
+      else:  # Python scalars
         aval = jax.typeof(leaf)
         types.append((aval.shape, aval.dtype, aval.weak_type, None))
     key = (self, tuple(sorted(static.items())), treedef, tuple(types), config)
@@ -186,7 +192,8 @@ class Program:
     """The disk cache's file of `key`; None when the program stays in memory."""
     _, static, treedef, types, config = key
     statics = repr(static)
-    if (any(placement is not None for *_, placement in types) or _ADDRESS.search(statics)
+    if (not self._stored or any(placement is not None for *_, placement in types)
+        or _ADDRESS.search(statics)
         or "<" in self.__qualname__ or self._source_hash() is None):
       return None
     directory = _directory()

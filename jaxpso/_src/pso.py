@@ -80,6 +80,7 @@ from jax.sharding import NamedSharding
 from jax.sharding import PartitionSpec
 
 from jaxpso._src import checks
+from jaxpso._src import programs
 from jaxpso._src import sharding
 from jaxpso._src.pso_types import _NO_PATIENCE
 from jaxpso._src.pso_types import PSOConfig
@@ -269,8 +270,8 @@ def _split_swarm(state: PSOState, mesh) -> PSOState:
   return jax.lax.with_sharding_constraint(state, layout)
 
 
-def _run_impl(key, lower, upper, args, hparams, positions, velocities, centre, scale, *,
-              loss_fn, config, mesh=None, limits=None):
+def _run_impl(key, lower, upper, args, hparams, positions, velocities, centre, scale,
+              limits=None, *, loss_fn, config, mesh=None):
   """`run` on validated arrays, un-jitted: callable inside other compiled programs.
 
   Args:
@@ -298,7 +299,7 @@ def _run_impl(key, lower, upper, args, hparams, positions, velocities, centre, s
   return _result(jax.lax.while_loop(running, body, state), limits)
 
 
-_run = jax.jit(_run_impl, static_argnames=("loss_fn", "config", "mesh"))
+_run = programs.Program(_run_impl, static_argnames=("loss_fn", "config", "mesh"), stored=False)
 
 
 @functools.lru_cache(maxsize=256)
@@ -331,10 +332,10 @@ def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
   Non-finite losses never become a best; if no finite loss was ever seen the
   status is `Status.NON_FINITE`.  The same key gives a bit-identical result.
   Compiled once per (loss_fn, `config.static()`, shapes): new `args`,
-  bounds, `hparams` or termination settings do not recompile.  JAX keeps
-  every program; on a CPU about 600 of them exhaust Linux's memory-map
-  limit (benchmarks/results/program_memory.md), so a larger sweep calls
-  `jax.clear_caches()` between groups.
+  bounds, `hparams` or termination settings do not recompile.  The
+  programs share the bounded table of jaxpso's own (the 16 last used, in
+  memory only): a sweep over thousands of configurations holds 16, where
+  JAX's caches would keep every one (benchmarks/results/program_memory.md).
 
   Args:
     key: PRNG key or int seed.
@@ -365,13 +366,11 @@ def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
   lower, upper, hparams, positions, velocities, centre, scale = _prepare(
       lower, upper, hparams, config, positions, velocities, centre, scale)
   static, limits = _static_and_limits(config)
-  return _run(key, lower, upper, args, hparams, positions, velocities, centre, scale,
-              loss_fn=loss_fn, config=static, limits=limits,
-              mesh=_swarm_mesh(devices, config.swarm_size))
+  return _run(key, lower, upper, args, hparams, positions, velocities, centre, scale, limits,
+              loss_fn=loss_fn, config=static, mesh=_swarm_mesh(devices, config.swarm_size))
 
 
-@functools.partial(jax.jit, static_argnames=("loss_fn", "config", "keep_positions"))
-def _trace(key, lower, upper, args, hparams, positions, velocities, centre, scale, limits, *,
+def _trace_impl(key, lower, upper, args, hparams, positions, velocities, centre, scale, limits, *,
            loss_fn, config, keep_positions):
   # The scan length, config.max_iterations, is static: the schedules use it as a constant.
   limits = _as_limits(limits._replace(max_iterations=config.max_iterations))
@@ -386,6 +385,10 @@ def _trace(key, lower, upper, args, hparams, positions, velocities, centre, scal
   fixed_length = limits._replace(patience=jnp.int32(_NO_PATIENCE),
                                  stop_weights=jnp.zeros(3, jnp.float32))
   return _result(state, fixed_length), PSOTrace(best_loss=best, x=xs)
+
+
+_trace = programs.Program(_trace_impl, static_argnames=("loss_fn", "config", "keep_positions"),
+                          stored=False)
 
 
 def trace(key, loss_fn: Callable, lower, upper, args: Any = None, *,
