@@ -410,6 +410,27 @@ def test_a_level_keeps_its_pixels_of_largest_gradient_ties_going_to_the_first(co
   np.testing.assert_array_equal(templates._largest_gradient(image, count), expected)
 
 
+@pytest.mark.parametrize("period", [2, 3])
+def test_the_full_resolution_set_sees_a_texture_of_its_subsampling_period(period):
+  # A 60×60 template is scored on one pixel of every 2×2 cell (90×90: 3×3).
+  # The regular grid (every s-th row and column) sees a texture of period s
+  # as constant, `quality` 0 whatever the estimate: the pixels move in their
+  # cells.  A photograph keeps the regular grid.
+  from jaxpso._src import template as templates
+  side = 30 * period
+  yy, xx = np.mgrid[:side, :side]
+  texture = np.where((yy + xx) % period == 0, 0.7, 0.3).astype(np.float32)  # 2: a checkerboard
+  prepared = templates.prepare(texture, 1, 1.0, 16)
+  offset, count = (int(v) for v in prepared.sets[templates.FULL])
+  assert count == 900  # one pixel per cell
+  values = np.asarray(prepared.values[offset:offset + count])
+  assert abs(values.mean() - texture.mean()) < 0.03 and values.std() > 0.9 * texture.std()
+  photo = IMAGE[:side, :side]
+  grid = np.arange(0, side, period)
+  np.testing.assert_array_equal(templates._subsample(photo, 900),
+                                (grid[:, None] * side + grid[None, :]).reshape(-1))
+
+
 def test_the_refinements_last_step_fades_out_instead_of_switching_off():
   # `refine.levenberg_marquardt(polish=True)` ends with the undamped step c
   # from its best estimate: whole up to 4× the tolerance, none past 8×, and

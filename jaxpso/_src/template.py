@@ -15,9 +15,10 @@ their pyramid level:
   of more than `resolution` pixels keeps that many of largest gradient, so
   a large template costs no more than one of `resolution` pixels.
 * `FULL`: the full-resolution pixels of the final loss and `quality`: all
-  of them up to `resolution`, over that a regular subsample (every s-th
-  row and column; with the default `RESOLUTION` a 100×100 template keeps
-  every third), scored in one chunk.
+  of them up to `resolution`, over that one pixel of every s×s cell (every
+  s-th row and column, or a pseudo-random place in the cell where that grid
+  aliases a texture; with the default `RESOLUTION` a 100×100 template keeps
+  one of every 3×3), scored in one chunk.
 
 `resolution` (`TrackConfig.resolution`, static: it sets the arrays'
 capacity) is the budget of points per set; the default's trade-off is
@@ -139,14 +140,27 @@ def _largest_gradient(image: np.ndarray, count: int) -> np.ndarray:
   return np.flatnonzero(chosen)
 
 
-def _subsample(shape, resolution: int) -> np.ndarray:
-  """Flat indices of every s-th row and column, s the smallest keeping at most `resolution`."""
-  rows, cols = shape
+def _subsample(image: np.ndarray, resolution: int) -> np.ndarray:
+  """Flat indices of one pixel per s×s cell of `image` (h, w), s the smallest keeping at most `resolution`.
+
+  The pixel is the cell's first (every s-th row and column) unless that grid
+  keeps under half of the template's contrast, as it does a texture of
+  period s (a 1 px checkerboard at s = 2 is constant on it); then it is at a
+  place in the cell drawn once from a fixed seed.
+  """
+  rows, cols = image.shape
   step = 1
   while math.ceil(rows / step) * math.ceil(cols / step) > resolution:
     step += 1
-  grid = np.arange(0, rows, step)[:, None] * cols + np.arange(0, cols, step)[None, :]
-  return grid.reshape(-1)
+  top, left = np.arange(0, rows, step), np.arange(0, cols, step)
+  grid = (top[:, None] * cols + left[None, :]).reshape(-1)
+  values = image.reshape(-1)
+  if values[grid].std() >= 0.5 * values.std():
+    return grid
+  place = np.random.default_rng(0).random((2, top.size, left.size))
+  row = top[:, None] + (place[0] * np.minimum(step, rows - top)[:, None]).astype(np.int64)
+  col = left[None, :] + (place[1] * np.minimum(step, cols - left)[None, :]).astype(np.int64)
+  return (row * cols + col).reshape(-1)
 
 
 # MI bins intensities over the range between these quantiles, widened by
@@ -238,7 +252,7 @@ def prepare(template: np.ndarray, levels: int, pixels: float, bins: int,
     wanted = max(MIN_PIXELS, math.ceil(pixels * level.size)) if index == 0 else level.size
     chosen.append((level, _largest_gradient(level, min(wanted, resolution))))
   chosen += [None] * (atlas.MAX_LEVELS - levels)
-  chosen.append((pyramid[0], _subsample(pyramid[0].shape, resolution)))
+  chosen.append((pyramid[0], _subsample(pyramid[0], resolution)))
   points = np.zeros((capacity(resolution), 2), np.float32)
   values = np.zeros(capacity(resolution), np.float32)
   sets = np.zeros((atlas.MAX_LEVELS + 1, 2), np.int32)
