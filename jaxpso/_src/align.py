@@ -217,7 +217,7 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
                      f" got {sorted({t.shape for t in templates_})}")
   checks.check_texture(np.array([np.std(t) for t in templates_]), lambda i: named("template", i))
   shapes = [t.shape for t in templates_]
-  configs = [config.for_template(shape) for shape in shapes]
+  configs = [config.for_template(t.shape, t) for t in templates_]
   for i, (shape, c) in enumerate(zip(shapes, configs)):
     checks.check_template_size(shape, c.levels, c.resolution, named("template", i))
   starts = [checks.check_start(h, shape, named("init_homography", i))

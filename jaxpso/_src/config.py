@@ -105,7 +105,8 @@ class TrackConfig:
       searches the coarsest.  None (the default): as many as keep the
       template's shorter side at least `COARSEST_PX` pixels on the coarsest
       level, at most `AUTO_LEVELS` (`for_template`): 4 for a 100×100
-      template, 3 for 48×48.
+      template, 3 for 48×48; and none coarser than the first on which the
+      template's texture is flat (a 1 px checkerboard: 1 level).
     refine_steps (int): Gauss–Newton (Levenberg–Marquardt) steps per pyramid
       level after the swarm (0 disables the refinement).
     pixels (float): fraction in (0, 1] of the full-resolution template's
@@ -280,9 +281,18 @@ class TrackConfig:
       return HOPELESS_QUALITY[self.similarity]
     return self.hopeless_quality
 
-  def for_template(self, shape) -> "TrackConfig":
-    """This config with `levels` chosen for a template of `shape` (h, w) when it is None."""
-    return self if self.levels is not None else _with_levels(self, tuple(shape))
+  def for_template(self, shape, template: np.ndarray | None = None) -> "TrackConfig":
+    """This config with `levels` chosen for a template of `shape` (h, w) when it is None.
+
+    Given the template's (h, w) pixels, the levels also end above the first
+    that shows none of its texture (`template.textured_levels`).
+    """
+    if self.levels is not None:
+      return self
+    config = _with_levels(self, tuple(shape))
+    if template is None:
+      return config
+    return _with_levels(self, tuple(shape), templates.textured_levels(template, config.levels))
 
   def pso_config(self) -> pso.PSOConfig:
     """The swarm's settings (batched loss over the whole swarm)."""
@@ -339,10 +349,11 @@ def _statics(config: TrackConfig) -> TrackConfig:
 
 
 @functools.lru_cache(maxsize=64)
-def _with_levels(config: TrackConfig, shape: tuple) -> TrackConfig:
-  """`TrackConfig.for_template`, cached (`dataclasses.replace` re-validates the config)."""
+def _with_levels(config: TrackConfig, shape: tuple, most: int = AUTO_LEVELS) -> TrackConfig:
+  """`TrackConfig.for_template` with at most `most` levels, cached (`dataclasses.replace`
+  re-validates the config)."""
   levels = 1
-  while levels < AUTO_LEVELS and min(shape) / 2 ** levels >= COARSEST_PX:
+  while levels < min(most, AUTO_LEVELS) and min(shape) / 2 ** levels >= COARSEST_PX:
     levels += 1
   return dataclasses.replace(config, levels=levels)
 

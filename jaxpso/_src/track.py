@@ -717,16 +717,16 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
   if config.method != "pso" and len(set(shapes)) > 1:
     raise ValueError(f"every region tracked by {config.method!r} must have one size, got"
                      f" {sorted(set(shapes))}")
-  configs = [config.for_template(shape) for shape in shapes]
-  for r, (shape, c) in enumerate(zip(shapes, configs)):
-    checks.check_template_size(shape, c.levels, c.resolution, name(r))
-  levels = max(c.levels for c in configs)
-  checks.check_image_size(frame_shape, levels, "frames[0]")
+  for r, shape in enumerate(shapes):
+    checks.check_template_size(shape, config.for_template(shape).levels, config.resolution, name(r))
   pixels = [frame0[r if sequences else 0] for r in range(count)]
   templates_ = [track_inputs.template(f, corners, shape)
                 for f, (corners, shape) in zip(pixels, regions)]
   checks.check_texture(np.array([np.std(t) for t in templates_]),
                        lambda r: f"{name(r)} {rois[r]!r}")
+  configs = [config.for_template(t.shape, t) for t in templates_]
+  levels = max(c.levels for c in configs)
+  checks.check_image_size(frame_shape, levels, "frames[0]")
   starts = _starts(regions)
   geometry = None
   if config.motion == "plane":
