@@ -64,14 +64,16 @@ def main():
     limit = int(f.read())
   if per_program > 0.5:
     bound = (f"`vm.max_map_count` {limit}: about"
-             f" {(limit - full['maps']) / per_program + full['programs']:.0f} programs in one process.")
+             f" {(limit - full['maps']) / per_program + full['programs']:.0f} programs in one"
+             " process.")
   else:
     bound = f"the mappings do not grow towards `vm.max_map_count` ({limit})."
   info = common.machine()
   lines = ["# Memory held by compiled `pso.run` programs", "", common.machine_line(info), "",
            f"One program per swarm size 2–{args.programs + 1} (a 6-D sphere, 5 iterations);"
            f" jaxpso keeps the {programs.MAX_PROGRAMS} last used.  From {full['programs']} programs"
-           f" on, each adds {per_program:.1f} memory mappings and {per_program_mib:.1f} MiB; {bound}"
+           f" on, each adds {per_program:.1f} memory mappings and {per_program_mib:.1f} MiB;"
+           f" {bound}"
            "  After `jax.clear_caches()`: "
            f"{cleared['maps']} mappings, {cleared['resident_mib']:.0f} MiB.", "",
            "| programs compiled | memory mappings | resident MiB |", "|---:|---:|---:|"]

@@ -371,7 +371,7 @@ def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
 
 
 def _trace_impl(key, lower, upper, args, hparams, positions, velocities, centre, scale, limits, *,
-           loss_fn, config, keep_positions):
+                loss_fn, config, keep_positions):
   # The scan length, config.max_iterations, is static: the schedules use it as a constant.
   limits = _as_limits(limits._replace(max_iterations=config.max_iterations))
   state = _init(key, loss_fn, lower, upper, args, config, positions, velocities, centre, scale)

@@ -149,7 +149,8 @@ def _largest_gradient(image: np.ndarray, count: int) -> np.ndarray:
 
 
 def _subsample(image: np.ndarray, resolution: int) -> np.ndarray:
-  """Flat indices of one pixel per s×s cell of `image` (h, w), s the smallest keeping at most `resolution`.
+  """Flat indices of one pixel per s×s cell of `image` (h, w); s the smallest keeping at most
+  `resolution` pixels.
 
   The pixel is the cell's first (every s-th row and column) unless that grid
   keeps under half of the template's contrast, as it does a texture of
