@@ -8,7 +8,8 @@ swarm + Gauss–Newton) with `TrackConfig`, and the modules `jaxpso.warp`
 `jaxpso.pso` (the swarm optimizer), `jaxpso.synthetic` (test sequences) and
 `jaxpso.io` (videos, overlays, results files), `jaxpso.datasets` (the field's benchmarks:
 readers, metrics, `evaluate`).
-Compiled programs are kept on disk across processes: `cache_dir`, `set_cache_dir`.
+Compiled programs are kept on disk across processes (`cache_dir`, `set_cache_dir`) and the
+last used in memory (`set_max_programs`).
 Importing jaxpso does not import OpenCV or matplotlib.
 """
 
@@ -21,6 +22,7 @@ from jaxpso._src.evaluation import evaluate
 from jaxpso._src.baselines import METHODS
 from jaxpso._src.programs import cache_dir
 from jaxpso._src.programs import set_cache_dir
+from jaxpso._src.programs import set_max_programs
 from jaxpso._src.track import TrackResult
 from jaxpso._src.track import TrackStatus
 from jaxpso._src.track import track
@@ -37,4 +39,5 @@ __version__ = "0.1.0"
 
 __all__ = ("METHODS", "AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus",
            "align", "baselines", "cache_dir", "data", "datasets", "detect", "evaluate", "io",
-           "pso", "set_cache_dir", "similarity", "synthetic", "track", "warp", "__version__")
+           "pso", "set_cache_dir", "set_max_programs", "similarity", "synthetic", "track", "warp",
+           "__version__")

@@ -1,5 +1,6 @@
 """`programs`: jaxpso's programs compiled once, kept in memory (LRU) and on disk across processes."""
 
+import collections
 import dataclasses
 import functools
 import gc
@@ -18,6 +19,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+import jaxpso
 from jaxpso import pso
 from jaxpso._src import programs
 
@@ -174,6 +176,7 @@ def test_threads_asking_for_one_new_program_compile_it_once():
     np.testing.assert_array_equal(result, results[0])
 
 
+@pytest.mark.filterwarnings("ignore:jaxpso. compiled")
 def test_evicted_programs_are_released():
   programs.set_cache_dir(None)
   programs.set_max_programs(1)
@@ -347,6 +350,29 @@ class _Shifted:
 
   def __call__(self, x, args):
     return jnp.sum((x - self.shift) ** 2)
+
+
+def test_compiling_a_dropped_program_again_is_one_warning(monkeypatch):
+  monkeypatch.setattr(programs, "_evicted", collections.OrderedDict())
+  monkeypatch.setattr(programs, "_thrash_warned", False)
+  programs.set_cache_dir(None)
+  programs.set_max_programs(1)
+  with warnings.catch_warnings(record=True) as caught:
+    warnings.simplefilter("always")
+    _affine(*_data())
+    _affine(*_data(n=6))  # drops the first
+    assert not caught
+    for _ in range(3):  # a loop over two configurations with room for one
+      _affine(*_data())
+      _affine(*_data(n=6))
+  assert len(caught) == 1 and "set_max_programs" in str(caught[0].message)
+  assert "_affine" in str(caught[0].message)
+
+
+@pytest.mark.parametrize("bad", [0, -1, 2.5, True, "16"])
+def test_a_bad_bound_is_a_value_error(bad):
+  with pytest.raises(ValueError, match="max programs"):
+    jaxpso.set_max_programs(bad)
 
 
 def test_swarm_programs_are_bounded_and_stay_in_memory(cache):

@@ -43,10 +43,10 @@ def test_package_surface():
   assert set(jaxpso.__all__) == {"METHODS", "AlignResult", "AlignStatus", "TrackConfig",
                                  "TrackResult", "TrackStatus", "align", "baselines", "cache_dir",
                                  "data", "datasets", "detect", "evaluate", "io", "pso",
-                                 "set_cache_dir", "similarity",
+                                 "set_cache_dir", "set_max_programs", "similarity",
                                  "synthetic", "track", "warp", "__version__"}
   for name in ("AlignResult", "AlignStatus", "TrackConfig", "TrackResult", "TrackStatus",
-               "align", "cache_dir", "detect", "set_cache_dir", "track"):
+               "align", "cache_dir", "detect", "set_cache_dir", "set_max_programs", "track"):
     assert getattr(jaxpso, name).__doc__
   assert jaxpso.warp is warp and jaxpso.similarity is similarity and jaxpso.pso is pso
   assert isinstance(jaxpso.__version__, str) and jaxpso.__version__.count(".") >= 1

@@ -82,6 +82,9 @@ _table: collections.OrderedDict = collections.OrderedDict()  # key → jax.stage
 _pending: dict = {}  # key → the lock of the thread compiling or loading it
 _counts = {"compiled": 0, "loaded": 0, "reused": 0}
 _max_programs: int | None = MAX_PROGRAMS
+_EVICTED_KEPT = 4096
+_evicted: collections.OrderedDict = collections.OrderedDict()  # hashes of dropped keys, oldest first
+_thrash_warned = False
 _dir_setting = _UNSET  # set_cache_dir's path or None; _UNSET: the environment's, read at first use
 _dir: pathlib.Path | None = None  # the checked directory, None when off
 _dir_checked = False
@@ -181,6 +184,7 @@ class Program:
       if compiled is not None:
         _count("loaded")
         return compiled
+    _warn_if_evicted(key)
     program = _in_float32(self._fun)  # new per compilation: JAX's caches keyed weakly on it let go with it
     compiled = jax.jit(program, static_argnames=self._static).lower(*args, **static).compile()
     _count("compiled")
@@ -246,9 +250,25 @@ def _reuse(key):
 
 
 def _evict():
-  """Drops the least recently used programs beyond the bound; under `_lock`."""
+  """Drops the least recently used programs beyond the bound, remembering their keys' hashes;
+  under `_lock`."""
   while _max_programs is not None and len(_table) > _max_programs:
-    _table.popitem(last=False)
+    key, _ = _table.popitem(last=False)
+    _evicted[hash(key)] = None
+    while len(_evicted) > _EVICTED_KEPT:
+      _evicted.popitem(last=False)
+
+
+def _warn_if_evicted(key):
+  """One warning per process where a program dropped from the table is compiled again."""
+  global _thrash_warned
+  with _lock:
+    again = hash(key) in _evicted and not _thrash_warned
+    _thrash_warned = _thrash_warned or again
+  if again:
+    _warn(f"compiled {key[0].__qualname__} again after dropping it from the table of the"
+          f" {_max_programs} programs last used: a loop over more configurations than that compiles"
+          " on every call; raise the bound with jaxpso.set_max_programs(n)")
 
 
 def _count(name):
@@ -270,8 +290,16 @@ def clear():
 
 
 def set_max_programs(n: int | None):
-  """Bounds the programs kept in memory to `n` (None: no bound), dropping the least recently used."""
+  """Bounds the compiled programs kept in memory (jaxpso's and `pso.run`'s) to `n` (default
+  `MAX_PROGRAMS`; None: no bound), dropping the least recently used.
+
+  Each holds about 100 memory mappings and 5 MiB on a CPU
+  (benchmarks/results/program_memory.md); Linux stops a process at
+  `vm.max_map_count` (65 530) mappings.
+  """
   global _max_programs
+  if n is not None and (isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 1):
+    raise ValueError(f"max programs must be a positive int or None, got {n!r}")
   with _lock:
     _max_programs = n
     _evict()

@@ -335,7 +335,8 @@ def run(key, loss_fn: Callable, lower, upper, args: Any = None, *,
   bounds, `hparams` or termination settings do not recompile.  The
   programs share the bounded table of jaxpso's own (the 16 last used, in
   memory only): a sweep over thousands of configurations holds 16, where
-  JAX's caches would keep every one (benchmarks/results/program_memory.md).
+  JAX's caches would keep every one (benchmarks/results/program_memory.md);
+  a loop cycling through more raises the bound (`jaxpso.set_max_programs`).
 
   Args:
     key: PRNG key or int seed.
