@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import jaxpso
+from jaxpso._src import checks
 from jaxpso._src import track as track_module
 from jaxpso._src import programs
 from jaxpso._src.config import COAST_DECAY
@@ -435,6 +436,24 @@ def test_a_texture_flat_on_the_coarser_levels_gets_one_level(similarity):
   np.testing.assert_array_equal(result.status, jaxpso.TrackStatus.TRACKED)
   assert float(np.min(result.quality)) > 0.99
   assert _corner_rms(result.corners, _box_corners((70, 50, 60, 60))[None]).max() < 0.01
+
+
+def test_a_coasted_estimate_never_folds_the_template():
+  # Found by fuzzing: the last step of a strongly projective estimate (a 32×77
+  # region), extrapolated by coasting, put a template corner across the
+  # horizon, and the blurred registration from it raised align's
+  # "init_homography must map every template corner to a finite point".
+  last = np.array([[0.05425, -0.52429, 16.8095], [-0.39153, 0.55884, 44.8176],
+                   [-0.0051268, -0.0093996, 1.0]])
+  before = np.array([[0.1181, -0.82982, 24.7064], [-0.22892, 1.44929, 39.6369],
+                     [-0.0021743, 5.3872e-05, 1.0]])
+  recent = track_module._Recent(homography=last[None], before=before[None], after=last[None],
+                                gap=np.zeros(1, np.int32), tracked=last[None])
+  moved = np.eye(3) + (recent.motion(0) - np.eye(3))  # what coasting extrapolates
+  assert not checks.is_start(moved @ last, (32, 77))
+  coasted = track_module._coasted(recent, 0, (32, 77), (136, 325))
+  assert checks.is_start(coasted, (32, 77))
+  np.testing.assert_array_equal(coasted, last)  # unmoved
 
 
 # --- input formats ----------------------------------------------------------------------------

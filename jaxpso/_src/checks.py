@@ -184,11 +184,25 @@ def check_start(start, template_shape, name: str) -> np.ndarray:
   start = start.astype(np.float64)
   if not np.all(np.isfinite(start)) or abs(np.linalg.det(start)) < 1e-12:
     raise ValueError(f"{name} must be finite and invertible, got {start.tolist()!r}")
-  # w of one sign at the corners: the template is not cut by the horizon (-H is H).
-  rows, cols = template_shape
-  corners = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]])
-  depth = corners @ start[2, :2] + start[2, 2]
+  depth = _corner_depths(start, template_shape)
   if not (np.all(depth > 0) or np.all(depth < 0)):
     raise ValueError(f"{name} must map every template corner to a finite point"
                      f" (w of one sign), got w = {depth.tolist()} for {start.tolist()!r}")
   return start
+
+
+def is_start(h, template_shape) -> bool:
+  """Whether the (3, 3) homography h passes `check_start` for a template of `template_shape`."""
+  h = np.asarray(h, np.float64)
+  if not np.all(np.isfinite(h)) or abs(np.linalg.det(h)) < 1e-12:
+    return False
+  depth = _corner_depths(h, template_shape)
+  return bool(np.all(depth > 0) or np.all(depth < 0))
+
+
+def _corner_depths(h: np.ndarray, template_shape) -> np.ndarray:
+  """(4,) w of the template's corners under h; of one sign where no corner crosses the horizon
+  (-H is H)."""
+  rows, cols = template_shape
+  corners = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]])
+  return corners @ h[2, :2] + h[2, 2]

@@ -347,7 +347,8 @@ def _translation_of(motion_: np.ndarray, h: np.ndarray, shape) -> np.ndarray:
 def _coasted(recent: _Recent, r: int, shape, frame_shape) -> np.ndarray:
   """(3, 3) region r's homography on its next lost frame: the last one moved by `COAST_DECAY`^k of
   its last motion (to first order), k the lost frames before it; unmoved after a motion of
-  more than a quarter of the template's side.  A region last TRACKED less than
+  more than a quarter of the template's side, or where the extrapolated warp would fold the
+  template (a corner across the horizon).  A region last TRACKED less than
   `_MIN_IN_FRAME` inside the frame is leaving it: it moves on by the whole shift of its
   centre in the last motion, keeping its shape, and stops at its last place partly inside
   the frame.  The last steps of a region leaving match it squeezed into the frame; moved by
@@ -363,7 +364,7 @@ def _coasted(recent: _Recent, r: int, shape, frame_shape) -> np.ndarray:
     step = np.eye(3) + COAST_DECAY ** recent.gap[r] * (motion_ - np.eye(3))
   h = step @ recent.homography[r]
   h = h / h[2, 2]
-  if leaving and _inside_share(h, shape, frame_shape) <= 0.0:
+  if (leaving and _inside_share(h, shape, frame_shape) <= 0.0) or not checks.is_start(h, shape):
     return recent.homography[r]
   return h
 
