@@ -167,3 +167,19 @@ def test_a_blurred_region_half_out_of_the_frame_is_matched_by_the_blur_fitted_at
   smeared = track._smeared_part(frame, template, part, config, 0, similarity == "mi")
   assert float(smeared.quality) >= config.lost_threshold + 0.15, float(smeared.quality)
   np.testing.assert_allclose(np.asarray(smeared.homography)[:2, 2], [120.0, 70.0], atol=0.15)
+
+
+def test_a_start_that_folds_the_template_registers_nothing():
+  # Found by fuzzing: a tracked estimate whose w changes sign across the template (a corner
+  # past the horizon) reached these registrations, and align's start check raised out of
+  # `track`.  Each now reports no match.
+  texture = jaxpso.data.load_image("camera")
+  frame, template = texture[:200, :300].copy(), texture[50:117, 60:139].copy()  # 67×79
+  folds = np.array([[1.0, 0.0, 60.0], [0.0, 1.0, 50.0], [-0.02, 0.0, 1.0]])  # w(78, ·) = -0.56
+  config = detect.bounded(jaxpso.TrackConfig())
+  assert blur.register_blurred(frame, template, folds, np.eye(3), config, 0) is None
+  assert blur.register_fitted(frame, template, folds, config, 0, False) is None
+  assert visible.register_part(frame, template, folds, config, 0, False) == (None, 0.0)
+  fine = folds.copy()
+  fine[2, 0] = 0.0
+  assert blur.register_blurred(frame, template, fine, np.eye(3), config, 0) is not None

@@ -21,6 +21,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxpso._src import align as aligning
+from jaxpso._src import checks
 from jaxpso._src import visible
 
 MIN_MOTION_PX = 2.0
@@ -91,11 +92,13 @@ def smeared_along(template: np.ndarray, line) -> np.ndarray:
 def register_blurred(frame: np.ndarray, template: np.ndarray, h: np.ndarray, step: np.ndarray,
                      config, key):
   """`AlignResult` of the best of `EXPOSURES` (highest quality): `align` of the template smeared
-  along `step` (`smear`), from h.
+  along `step` (`smear`), from h; None where h folds the template (`checks.is_start`).
 
   frame (H, W), template (h, w) float32 grey; h (3, 3) the start; step (3, 3)
   the region's last motion between frames.
   """
+  if not checks.is_start(h, template.shape):
+    return None
   best = None
   for exposure in EXPOSURES:
     found = aligning.align(frame, smear(template, h, step, exposure), h, config=config, key=key)
@@ -156,11 +159,13 @@ def fit_line(frame: np.ndarray, template: np.ndarray, h: np.ndarray, either_sign
 def register_fitted(frame: np.ndarray, template: np.ndarray, h: np.ndarray, config, key,
                     either_sign: bool):
   """`AlignResult` of the template smeared by `fit_line`'s line at h, aligned from h; None where
-  the sharp template fits best, the line fits under `_MIN_FIT` or too little of the template
-  is inside the frame.
+  the sharp template fits best, the line fits under `_MIN_FIT`, too little of the template
+  is inside the frame or h folds it (`checks.is_start`).
 
   frame (H, W), template (h, w) float32 grey; h (3, 3) the start.
   """
+  if not checks.is_start(h, template.shape):
+    return None
   line, score = fit_line(frame, template, h, either_sign)
   if score < _MIN_FIT or not np.any(line):
     return None

@@ -453,8 +453,10 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
         and _inside_share(start, shape, images[r].shape) >= blur.MIN_INSIDE):
       smeared = blur.register_blurred(images[r], templates_[r], start, recent.motion(r), bounded,
                                       index)
-      share = _inside_share(smeared.homography, shape, images[r].shape)
-      if (float(smeared.quality) >= config.lost_threshold and share >= blur.MIN_INSIDE
+      share = 0.0 if smeared is None else _inside_share(smeared.homography, shape,
+                                                        images[r].shape)
+      if (smeared is not None and float(smeared.quality) >= config.lost_threshold
+          and share >= blur.MIN_INSIDE
           and _corner_distance(smeared.homography, recent.homography[r], shape) <= reach):
         found[r], shares[r] = (smeared, TrackStatus.TRACKED), share
         continue

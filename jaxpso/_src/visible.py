@@ -239,8 +239,11 @@ def register_part(frame: np.ndarray, template: np.ndarray, h: np.ndarray, config
 
   frame (H, W), template (h, w) float32 grey; h (3, 3) the estimate.  The
   blocks are judged at h or at h `recentred`, whichever shows more of them.
+  (None, 0) where h folds the template (`checks.is_start`).
   """
   h = np.asarray(h, np.float64)
+  if not checks.is_start(h, template.shape):
+    return None, 0.0
   visible = blocks(frame, template, h, either_sign)
   moved = recentred(frame, template, h, either_sign)
   if not np.array_equal(moved, h):
