@@ -78,7 +78,8 @@ class TrackResult(NamedTuple):
     scores: (T,) similarity at the estimate (an error for "ssd").
     quality: (T,) `problem.quality` of the estimate: about 1 for a match,
       lower the worse (1 at frame 0; `TrackConfig.lost_threshold` is the
-      threshold).
+      threshold); -inf on a LOST frame where no candidate warp was
+      admissible with enough valid pixels (never NaN).
     status: (T,) int32 `TrackStatus`.
     poses: (T, 4, 4) frame-0 → frame camera poses for motion "plane", else None.
     num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0).
