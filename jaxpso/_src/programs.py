@@ -144,7 +144,7 @@ class Program:
     config = tuple(getattr(jax.config, name) for name in _CONFIG)
     default = _default_sharding(config[-1])
     types = []
-    for leaf in leaves:
+    for index, leaf in enumerate(leaves):
       if isinstance(leaf, (np.ndarray, np.generic)):
         types.append((leaf.shape, leaf.dtype, False, None))
       elif isinstance(leaf, jax.core.Tracer):
@@ -154,7 +154,10 @@ class Program:
         types.append((leaf.shape, leaf.dtype, getattr(leaf, "weak_type", False),
                       None if placement == default else placement))
       else:  # Python scalars
-        aval = jax.typeof(leaf)
+        try:
+          aval = jax.typeof(leaf)
+        except TypeError:
+          raise TypeError(self._not_an_array(args, index)) from None
         types.append((aval.shape, aval.dtype, aval.weak_type, None))
     key = (self, tuple(sorted(static.items())), treedef, tuple(types), config)
     with _lock:
@@ -175,6 +178,14 @@ class Program:
         with _lock:
           _pending.pop(key, None)
     return compiled
+
+  def _not_an_array(self, args, index: int) -> str:
+    """The message for leaf `index` of `args`, which is neither an array nor a scalar."""
+    path, leaf = jax.tree_util.tree_flatten_with_path(args)[0][index]
+    names = list(inspect.signature(self._fun).parameters)
+    name = names[path[0].idx] + jax.tree_util.keystr(path[1:])
+    return (f"{self.__qualname__}: argument {name} must be an array or a scalar, got {leaf!r}"
+            f" of type {type(leaf)}")
 
   def _load_or_compile(self, key, args, static, default):
     """A missing program: loaded from the disk cache, else compiled (and written there)."""
