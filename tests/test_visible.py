@@ -72,3 +72,20 @@ def test_followed_moves_a_region_mostly_outside_with_its_part_inside(similarity)
   away = truth @ np.array([[1.0, 0, 64.0], [0, 1, 0], [0, 0, 1]])
   moved, score = visible.followed(frame, template, away, either_sign)
   assert score == -1.0 and np.array_equal(moved, away)
+
+
+def test_a_part_s_match_that_folds_the_whole_template_is_no_match(monkeypatch):
+  # Found by fuzzing: a visible part's match, admissible for the part, can put
+  # the rest of the template across the horizon; `track` reported such a
+  # whole homography TRACKED.  A match of the left half bent so that w
+  # stays positive over the half and turns negative at the template's far edge.
+  frame, template = _half_out()
+  truth = np.array([[1.0, 0, -60], [0, 1, 40], [0, 0, 1]])
+  config = detect.bounded(jaxpso.TrackConfig(similarity="ncc"))
+  part, share = visible.register_part(frame, template, truth, config, 0, False)
+  assert part is not None and share > 0.4
+  align = visible.aligning.align
+  bend = np.array([[1.0, 0, 0], [0, 1, 0], [0.02, 0, 1]])  # w = 1 + 0.02 x in the part's pixels
+  monkeypatch.setattr(visible.aligning, "align", lambda *a, **k: (lambda found: found._replace(
+      homography=np.asarray(found.homography, np.float64) @ bend))(align(*a, **k)))
+  assert visible.register_part(frame, template, truth, config, 0, False) == (None, share)

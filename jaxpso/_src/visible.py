@@ -239,7 +239,8 @@ def register_part(frame: np.ndarray, template: np.ndarray, h: np.ndarray, config
 
   frame (H, W), template (h, w) float32 grey; h (3, 3) the estimate.  The
   blocks are judged at h or at h `recentred`, whichever shows more of them.
-  (None, 0) where h folds the template (`checks.is_start`).
+  (None, 0) where h folds the template (`checks.is_start`), (None, visible share) where the
+  part's match does.
   """
   h = np.asarray(h, np.float64)
   if not checks.is_start(h, template.shape):
@@ -264,4 +265,6 @@ def register_part(frame: np.ndarray, template: np.ndarray, h: np.ndarray, config
     return None, share
   found = aligning.align(frame, part, np.asarray(h, np.float64) @ shift, config=config, key=key)
   whole = np.asarray(found.homography, np.float64) @ np.linalg.inv(shift)
+  if not checks.is_start(whole, template.shape):  # the part's match folds the rest
+    return None, share
   return found._replace(homography=(whole / whole[2, 2]).astype(np.float32)), share
