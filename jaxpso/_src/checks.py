@@ -182,27 +182,26 @@ def check_start(start, template_shape, name: str) -> np.ndarray:
   if not np.issubdtype(start.dtype, np.number) or start.shape != (3, 3):
     raise ValueError(f"{name} must be a (3, 3) real matrix, got {start.dtype}{start.shape}")
   start = start.astype(np.float64)
-  if not np.all(np.isfinite(start)) or abs(np.linalg.det(start)) < 1e-12:
-    raise ValueError(f"{name} must be finite and invertible, got {start.tolist()!r}")
-  depth = _corner_depths(start, template_shape)
-  if not (np.all(depth > 0) or np.all(depth < 0)):
-    raise ValueError(f"{name} must map every template corner to a finite point"
-                     f" (w of one sign), got w = {depth.tolist()} for {start.tolist()!r}")
+  problem = _start_problem(start, template_shape)
+  if problem is not None:
+    raise ValueError(f"{name} must {problem}")
   return start
 
 
 def is_start(h, template_shape) -> bool:
   """Whether the (3, 3) homography h passes `check_start` for a template of `template_shape`."""
-  h = np.asarray(h, np.float64)
+  return _start_problem(np.asarray(h, np.float64), template_shape) is None
+
+
+def _start_problem(h: np.ndarray, template_shape) -> str | None:
+  """What a (3, 3) float64 homography h lacks as a start (after "must"), or None."""
   if not np.all(np.isfinite(h)) or abs(np.linalg.det(h)) < 1e-12:
-    return False
-  depth = _corner_depths(h, template_shape)
-  return bool(np.all(depth > 0) or np.all(depth < 0))
-
-
-def _corner_depths(h: np.ndarray, template_shape) -> np.ndarray:
-  """(4,) w of the template's corners under h; of one sign where no corner crosses the horizon
-  (-H is H)."""
+    return f"be finite and invertible, got {h.tolist()!r}"
+  # w of one sign at the corners: the template is not cut by the horizon (-H is H).
   rows, cols = template_shape
   corners = np.array([[0, 0], [cols - 1, 0], [cols - 1, rows - 1], [0, rows - 1]])
-  return corners @ h[2, :2] + h[2, 2]
+  depth = corners @ h[2, :2] + h[2, 2]
+  if not (np.all(depth > 0) or np.all(depth < 0)):
+    return (f"map every template corner to a finite point (w of one sign), got w ="
+            f" {depth.tolist()} for {h.tolist()!r}")
+  return None
