@@ -6,6 +6,7 @@ import pytest
 
 import jaxpso
 from jaxpso._src import blur
+from jaxpso._src import checks
 from jaxpso._src import detect
 from jaxpso._src import track
 from jaxpso._src import visible
@@ -183,3 +184,22 @@ def test_a_start_that_folds_the_template_registers_nothing():
   fine = folds.copy()
   fine[2, 0] = 0.0
   assert blur.register_blurred(frame, template, fine, np.eye(3), config, 0) is not None
+
+
+def test_a_texture_smeared_flat_along_its_period_registers_nothing():
+  # Found by benchmarks/periodic.py: stripes of period 4 moving 8 px a frame
+  # along x smear to a constant (std under checks.MIN_TEXTURE), and align's
+  # texture check raised out of `track`.  A smear with no texture is not tried.
+  xx = np.arange(80)[None].repeat(60, 0)
+  template = (0.5 + 0.05 * ((xx // 2) % 2)).astype(np.float32)  # std 0.025
+  frame = np.full((120, 160), 0.5, np.float32)
+  frame[30:90, 40:120] = template
+  start = np.array([[1.0, 0, 40], [0, 1, 30], [0, 0, 1]])
+  along = np.array([[1.0, 0, 8], [0, 1, 0], [0, 0, 1]])
+  config = detect.bounded(jaxpso.TrackConfig())
+  assert all(np.std(blur.smear(template, start, along, e)) < checks.MIN_TEXTURE
+             for e in blur.EXPOSURES)
+  assert blur.register_blurred(frame, template, start, along, config, 0) is None
+  across = np.array([[1.0, 0, 0], [0, 1, 8], [0, 0, 1]])  # along the stripes: they stay
+  found = blur.register_blurred(frame, template, start, across, config, 0)
+  assert found is not None and float(found.quality) > 0.9

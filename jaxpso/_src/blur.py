@@ -92,7 +92,9 @@ def smeared_along(template: np.ndarray, line) -> np.ndarray:
 def register_blurred(frame: np.ndarray, template: np.ndarray, h: np.ndarray, step: np.ndarray,
                      config, key):
   """`AlignResult` of the best of `EXPOSURES` (highest quality): `align` of the template smeared
-  along `step` (`smear`), from h; None where h folds the template (`checks.is_start`).
+  along `step` (`smear`), from h; None where h folds the template (`checks.is_start`) or
+  every smear is textureless (`checks.MIN_TEXTURE`: a periodic texture smeared along its
+  period).
 
   frame (H, W), template (h, w) float32 grey; h (3, 3) the start; step (3, 3)
   the region's last motion between frames.
@@ -101,7 +103,10 @@ def register_blurred(frame: np.ndarray, template: np.ndarray, h: np.ndarray, ste
     return None
   best = None
   for exposure in EXPOSURES:
-    found = aligning.align(frame, smear(template, h, step, exposure), h, config=config, key=key)
+    smeared = smear(template, h, step, exposure)
+    if np.std(smeared) < checks.MIN_TEXTURE:
+      continue
+    found = aligning.align(frame, smeared, h, config=config, key=key)
     if best is None or float(found.quality) > float(best.quality):
       best = found
   return best
@@ -160,7 +165,7 @@ def register_fitted(frame: np.ndarray, template: np.ndarray, h: np.ndarray, conf
                     either_sign: bool):
   """`AlignResult` of the template smeared by `fit_line`'s line at h, aligned from h; None where
   the sharp template fits best, the line fits under `_MIN_FIT`, too little of the template
-  is inside the frame or h folds it (`checks.is_start`).
+  is inside the frame, h folds it (`checks.is_start`) or the smear is textureless.
 
   frame (H, W), template (h, w) float32 grey; h (3, 3) the start.
   """
@@ -169,4 +174,7 @@ def register_fitted(frame: np.ndarray, template: np.ndarray, h: np.ndarray, conf
   line, score = fit_line(frame, template, h, either_sign)
   if score < _MIN_FIT or not np.any(line):
     return None
-  return aligning.align(frame, smeared_along(template, line), h, config=config, key=key)
+  smeared = smeared_along(template, line)
+  if np.std(smeared) < checks.MIN_TEXTURE:
+    return None
+  return aligning.align(frame, smeared, h, config=config, key=key)
