@@ -438,6 +438,47 @@ def test_a_texture_flat_on_the_coarser_levels_gets_one_level(similarity):
   assert _corner_rms(result.corners, _box_corners((70, 50, 60, 60))[None]).max() < 0.01
 
 
+def _diagonal_stripes(rows: int, cols: int, period: int) -> np.ndarray:
+  yy, xx = np.mgrid[:rows, :cols]
+  return np.where((yy + xx) % period < period / 2, 0.7, 0.3).astype(np.float32)
+
+
+@pytest.mark.parametrize("similarity", ["mi", "ncc", "ssd"])
+def test_stripes_moving_along_themselves_are_followed(similarity):
+  # A stripes region pasted on a photograph moves along its stripes by
+  # (1, -1) px a frame: there it matches itself everywhere but at its
+  # border.  The searches stayed in the nearest basin and the estimate slid
+  # 1.4 px a frame behind, TRACKED at a quality falling from 1 to 0.66
+  # (MI; 7.1 px off at frame 5).  Each match now moves to the template shift
+  # that correlates best around it (`periodic.best_shift`).
+  background = np.asarray(jaxpso.data.load_image("camera"), np.float32)[200:360, 100:300]
+  frames, truth = [], []
+  for t in range(6):
+    frame = background.copy()
+    frame[30 - t:130 - t, 70 + t:120 + t] = _diagonal_stripes(100, 50, 2)
+    frames.append(frame)
+    truth.append(_box_corners((70 + t, 30 - t, 50, 100)))
+  result = jaxpso.track(np.stack(frames), (70, 30, 50, 100),
+                        config=jaxpso.TrackConfig(similarity=similarity), key=0)
+  assert _corner_rms(result.corners, np.stack(truth)).max() < 0.01
+  np.testing.assert_array_equal(result.status, jaxpso.TrackStatus.TRACKED)
+  assert float(np.min(result.quality)) > 0.99
+
+
+@pytest.mark.parametrize("similarity", ["mi", "ncc", "ssd"])
+def test_stripes_that_go_on_past_the_region_are_never_tracked(similarity):
+  # Where the stripes fill the frame around the region, nothing tells the
+  # places along them apart: wherever the estimate lands, it is DOUBTFUL.
+  frame = _diagonal_stripes(160, 200, 4)
+  frame[:, 150:] = np.asarray(jaxpso.data.load_image("camera"), np.float32)[:160, :50]
+  frames = np.stack([np.roll(frame, (-t, t), (0, 1)) for t in range(5)])
+  result = jaxpso.track(frames, (40, 30, 50, 100),
+                        config=jaxpso.TrackConfig(similarity=similarity), key=0)
+  assert np.all(np.isin(result.status[1:], [jaxpso.TrackStatus.DOUBTFUL,
+                                            jaxpso.TrackStatus.LOST])), result.status
+  assert np.all(np.isfinite(result.corners))
+
+
 def test_a_coasted_estimate_never_folds_the_template():
   # Found by fuzzing: the last step of a strongly projective estimate (a 32×77
   # region), extrapolated by coasting, put a template corner across the

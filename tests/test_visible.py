@@ -89,3 +89,19 @@ def test_a_part_s_match_that_folds_the_whole_template_is_no_match(monkeypatch):
   monkeypatch.setattr(visible.aligning, "align", lambda *a, **k: (lambda found: found._replace(
       homography=np.asarray(found.homography, np.float64) @ bend))(align(*a, **k)))
   assert visible.register_part(frame, template, truth, config, 0, False) == (None, share)
+
+
+def test_masked_correlation_of_either_sign_counts_a_perfect_anticorrelation():
+  # An exact inverse correlates at -1, the value that also marks a place
+  # with too little inside: taken as that mark, it was never the best.
+  rng = np.random.default_rng(3)
+  image = rng.random((40, 50)).astype(np.float32)
+  patch = 1.0 - image[10:30, 20:40]
+  inside = np.ones_like(image)
+  inside[:, :5] = 0.0
+  scores = visible.masked_correlation(image, inside, patch, 0.9, either_sign=True)
+  assert np.unravel_index(np.argmax(scores), scores.shape) == (10, 20)
+  assert scores[10, 20] == pytest.approx(1.0, abs=1e-5)
+  signed = visible.masked_correlation(image, inside, patch, 0.9)
+  assert signed[10, 20] == pytest.approx(-1.0, abs=1e-5)
+  assert np.all(scores[:, :2] == -1.0)  # under 0.9 of the patch inside

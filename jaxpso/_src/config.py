@@ -168,7 +168,9 @@ class TrackConfig:
       `motion_blur` on); a match whose quality reaches `lost_threshold` is
       TRACKED (a detection RECOVERED) and the next frames continue from
       it; a detection well under the region's best quality is DOUBTFUL,
-      and challenged by `detect` on the next frames.  Off: a
+      and challenged by `detect` on the next frames.  A periodic template's
+      match moves to the template shift that correlates best around it,
+      DOUBTFUL where another one does as well (`periodic`).  Off: a
       lost region keeps its last good estimate until the recovery search
       around it finds the target again.
     max_evaluations (int or None): the budget of one `align` call, or of

@@ -39,6 +39,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxpso._src import align as aligning
 from jaxpso._src import atlas
 from jaxpso._src import baselines
 from jaxpso._src import batching
@@ -48,6 +49,7 @@ from jaxpso._src import detect as detection
 from jaxpso._src import visible as visibility
 from jaxpso._src import homography
 from jaxpso._src import motion
+from jaxpso._src import periodic
 from jaxpso._src import plane
 from jaxpso._src import problem as problems
 from jaxpso._src import programs
@@ -473,20 +475,28 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
       if config.coast and _leaving(recent, r, shape, images[r].shape):
         _follow_part(carry, out, geometry, images[r], templates_[r], r, either_sign)
   for r, (f, status) in found.items():
-    h = np.asarray(f.homography, np.float32)
-    estimate = _pose(h, geometry, r)
-    carry.estimate[r] = estimate
-    velocity = np.eye(estimate.shape[-1], dtype=np.float32)
-    if status == TrackStatus.TRACKED and recent.gap[r] == 0:
-      velocity = (estimate.astype(np.float64) @ np.linalg.inv(before.estimate[r])).astype(
-          np.float32)
-    carry.velocity[r] = velocity
-    out["homography"][r], out["estimate"][r] = h, estimate
-    out["score"][r], out["quality"][r] = float(f.score), float(f.quality)
-    out["status"][r] = status
-    out["num_iterations"][r] += int(f.num_iterations)
-    out["num_evaluations"][r] += int(f.num_evaluations)
+    _adopt(carry, before, out, recent, geometry, r, f, status)
   return sharding.split(carry, mesh), out, shares
+
+
+def _adopt(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geometry, r: int, found,
+           status: TrackStatus) -> None:
+  """Region r's match replaced by `found` (an `AlignResult`) with `status` in `carry` and `out`
+  (host copies, changed in place; `before` the carry before the frame step); its motion since
+  the last frame becomes the velocity where it is TRACKED right after a frame not LOST."""
+  h = np.asarray(found.homography, np.float32)
+  estimate = _pose(h, geometry, r)
+  carry.estimate[r] = estimate
+  velocity = np.eye(estimate.shape[-1], dtype=np.float32)
+  if status == TrackStatus.TRACKED and recent.gap[r] == 0:
+    velocity = (estimate.astype(np.float64) @ np.linalg.inv(before.estimate[r])).astype(
+        np.float32)
+  carry.velocity[r] = velocity
+  out["homography"][r], out["estimate"][r] = h, estimate
+  out["score"][r], out["quality"][r] = float(found.score), float(found.quality)
+  out["status"][r] = status
+  out["num_iterations"][r] += int(found.num_iterations)
+  out["num_evaluations"][r] += int(found.num_evaluations)
 
 
 def _smeared_part(image: np.ndarray, template: np.ndarray, part, config: TrackConfig, index: int,
@@ -559,6 +569,58 @@ def _detected(image: np.ndarray, template: np.ndarray, config: TrackConfig, inde
     return found, 1.0
   return _confirmed_part(image, template, found, detection.bounded(config), index,
                          config.similarity == "mi", least)
+
+
+# A periodic template's match (`periodic.aliased`) moves to the template
+# shift within `periodic.reach` that correlates best with the frame, where
+# `align` from there reaches a higher quality, up to _ALIAS_MOVES times (a
+# match found a period or two away).  It is DOUBTFUL where a shift at least
+# _ALIAS_APART_PX from it correlates within _ALIAS_TIE of it (the texture
+# goes on past the template, or the border that tells the places apart is
+# hidden), or where its quality falls more than `_margin` short of the best
+# the region was TRACKED at, frame 0's 1 included.  Fuzzing, 2026-11-28
+# (benchmarks/periodic.py): a 50-120 px stripes template pasted on a
+# photograph correlated 0.84-0.99 a few pixels along its stripes from the
+# truth's 1.0; squeezed or turned along its stripes it matched 3-17 px off
+# at NCC 0.87, MI 0.67-0.96 and SSD 0.59-0.65 where no shift did better,
+# some from the first frame on.
+_ALIAS_MOVES, _ALIAS_APART_PX, _ALIAS_TIE = 3, 2, 0.01
+
+
+def _dealiased(carry: _Carry, before: _Carry, out: dict, regions, recent: _Recent, images: list,
+               templates_: list, geometry, config: TrackConfig, index: int, mesh,
+               best: np.ndarray):
+  """(carry, out) with the periodic regions `regions` (indices, not LOST) moved to their best
+  template shift, DOUBTFUL where that is not clear (`_ALIAS_TIE`) or their quality falls a
+  `_margin` short of `best` (R,); frame `index` seeds `align`."""
+  either_sign = config.similarity == "mi"
+  out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
+  carry, before = (_Carry(*(np.array(leaf) for leaf in sharding.to_host(c)))
+                   for c in (carry, before))
+  for r in regions:
+    template = templates_[r]
+    d = periodic.reach(template.shape)
+    at = np.zeros(2, int)  # the match's shift in `scores`
+    for _ in range(_ALIAS_MOVES):
+      h = out["homography"][r].astype(np.float64)
+      shift, scores = periodic.best_shift(images[r], template, h, either_sign)
+      if not np.any(shift):
+        break
+      moved = h @ np.array([[1.0, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1]])
+      found = aligning.align(images[r], template, moved, config=detection.bounded(config),
+                             key=index)
+      if not float(found.quality) > out["quality"][r]:
+        break
+      _adopt(carry, before, out, recent, geometry, r, found, out["status"][r])
+    else:
+      at = shift
+    rows, cols = np.mgrid[-d:d + 1, -d:d + 1]
+    apart = np.maximum(np.abs(cols - at[0]), np.abs(rows - at[1])) >= _ALIAS_APART_PX
+    here = scores[d + at[1], d + at[0]]  # -1: too little inside the frame to compare
+    if ((here > -1.0 and np.any(scores[apart] >= here - _ALIAS_TIE))
+        or out["quality"][r] < best[r] - _margin(config)):
+      out["status"][r] = TrackStatus.DOUBTFUL
+  return sharding.split(carry, mesh), out
 
 
 def _keep_lost(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geometry,
@@ -729,6 +791,8 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
   checks.check_texture(np.array([np.std(t) for t in templates_]),
                        lambda r: f"{name(r)} {rois[r]!r}")
   configs = [config.for_template(t.shape, t) for t in templates_]
+  aliased = np.array([config.redetect and config.method == "pso" and periodic.aliased(t)
+                      for t in templates_])
   levels = max(c.levels for c in configs)
   checks.check_image_size(frame_shape, levels, "frames[0]")
   starts = _starts(regions)
@@ -799,6 +863,12 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
     for r, (last, best) in doubt.items():  # each also in `check`: `out` is on the host
       if host["status"][r] != TrackStatus.LOST and host["quality"][r] < best - _margin(config) / 2:
         out["status"][r] = host["status"][r] = TrackStatus.DOUBTFUL
+    periodic_ = np.flatnonzero(aliased & (host["status"][:count] != TrackStatus.LOST))
+    if periodic_.size:
+      carry, out = _dealiased(carry, before, out, periodic_, recent,
+                              images if sequences else images * count, templates_, geometry,
+                              config, index, mesh, np.maximum(peak, 1.0))
+      host = sharding.to_host({k: out[k] for k in ("status", "quality")})
     tracked = host["status"][:count] == TrackStatus.TRACKED
     peak[tracked] = np.maximum(peak[tracked], host["quality"][:count][tracked])
     return carry, out

@@ -110,11 +110,11 @@ def correlation(a: np.ndarray, b: np.ndarray, either_sign: bool) -> float:
 
 
 def masked_correlation(image: np.ndarray, inside: np.ndarray, patch: np.ndarray,
-                       least: float) -> np.ndarray:
+                       least: float, either_sign: bool = False) -> np.ndarray:
   """(H − h + 1, W − w + 1) the normalised cross-correlation of an (h, w) `patch` placed at
   every offset of an (H, W) `image` whose pixels count where `inside` (H, W) is 1 (0
-  elsewhere), over those pixels alone; -1 where fewer than `least` of the patch's are, or
-  either side is flat there."""
+  elsewhere), over those pixels alone, its magnitude where `either_sign`; -1 where fewer than
+  `least` of the patch's are, or either side is flat there."""
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
 
   inside = np.asarray(inside, np.float32)
@@ -133,7 +133,8 @@ def masked_correlation(image: np.ndarray, inside: np.ndarray, patch: np.ndarray,
   covariance = s_ip - s_i * s_p / n
   spread = np.maximum(s_ii - s_i * s_i / n, 0.0) * np.maximum(s_pp - s_p * s_p / n, 0.0)
   enough = (count >= least * patch.size - 0.5) & (spread > 1e-12 * n * n)
-  return np.where(enough, covariance / np.sqrt(np.maximum(spread, 1e-30)), -1.0)
+  scores = covariance / np.sqrt(np.maximum(spread, 1e-30))
+  return np.where(enough, np.abs(scores) if either_sign else scores, -1.0)
 
 
 def followed(frame: np.ndarray, template: np.ndarray, h: np.ndarray,
@@ -158,9 +159,7 @@ def followed(frame: np.ndarray, template: np.ndarray, h: np.ndarray,
   back, inside = mapped_back(cv2.GaussianBlur(frame, (0, 0), _SMOOTHING_PX), h @ around,
                              (cols + 2 * pad, rows + 2 * pad), rim)
   patch = cv2.GaussianBlur(template, (0, 0), _SMOOTHING_PX)[rim:rows - rim, rim:cols - rim]
-  scores = masked_correlation(back, inside > 0.999, patch, FOLLOW_SHARE)
-  if either_sign:
-    scores = np.where(scores > -1.0, np.abs(scores), -1.0)
+  scores = masked_correlation(back, inside > 0.999, patch, FOLLOW_SHARE, either_sign)
   dy, dx = np.unravel_index(int(np.argmax(scores)), scores.shape)
   if scores[dy, dx] <= -1.0:
     return h, -1.0
