@@ -4,14 +4,15 @@ Why: a periodic texture (stripes, a checkerboard, tiles) matches itself
 moved by its period, and straight stripes match themselves anywhere along
 the stripes: only the template's border, where texture meets background,
 tells those places from the truth.  `track`'s searches stop in the nearest
-of these basins.  Fuzzing with moving periodic textures (2-5 px periods,
-24-120 px templates pasted on a photograph, 2026-11-28) found 12 % of
-TRACKED frames more than 5 px off: the estimate slid along the stripes by
-the target's motion each frame, at a quality that fell from 1 to 0.7 while
-the truth, 2-10 px away, scored 1.  So for such a template `track` looks
-at every template shift within `REACH_PX` of each match (`best_shift`),
-moves to a better one, and calls a match that another shift equals
-DOUBTFUL.  On the host, only for templates `aliased` flags.
+of these basins.  Moving periodic textures (2-6 px periods, 24-120 px
+templates pasted on a photograph; benchmarks/periodic.py, 2026-11-28) had
+101 of 1 598 frames TRACKED or RECOVERED more than 5 px off: the estimate
+slid along the stripes by the target's motion each frame, at a quality
+that fell from 1 to 0.7 while the truth, 2-10 px away, scored 1.  So for
+such a template `track` looks at every template shift within `REACH_PX`
+of each match (`best_shift`), moves to a better one, and calls a match
+that another shift equals DOUBTFUL.  On the host, only for templates
+`aliased` flags.
 """
 
 from __future__ import annotations
