@@ -81,7 +81,8 @@ class TrackResult(NamedTuple):
     quality: (T,) `problem.quality` of the estimate: about 1 for a match,
       lower the worse (1 at frame 0; `TrackConfig.lost_threshold` is the
       threshold); -inf on a LOST frame where no candidate warp was
-      admissible with enough valid pixels (never NaN).
+      admissible with enough valid pixels, or the match's shape was
+      impossible or jumped (`_plausible`) (never NaN).
     status: (T,) int32 `TrackStatus`.
     poses: (T, 4, 4) frame-0 → frame camera poses for motion "plane", else None.
     num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0).
@@ -287,7 +288,8 @@ class _Recent(NamedTuple):
   before and after its last step between two frames not LOST (R, 3, 3 each; both the
   re-acquired one after a loss), whose motion the region is predicted to go on with; the
   frames since the last estimate not LOST (R,); the last TRACKED frame's homography
-  (R, 3, 3), where a region that left the frame comes back (`_reentry_ranges`).
+  (R, 3, 3), where a region that left the frame comes back (`_reentry_ranges`); the
+  templates' corners (R, 4, 2).
 
   Per frame only copies: matrix products and inverses on the host, in
   OpenBLAS, cost the device step's threads 0.3-0.6 ms a frame (video.py).
@@ -297,6 +299,7 @@ class _Recent(NamedTuple):
   after: np.ndarray
   gap: np.ndarray
   tracked: np.ndarray
+  rects: np.ndarray
 
   def motion(self, r: int) -> np.ndarray:
     """(3, 3) region r's last inter-frame motion, h[2, 2] = 1."""
@@ -313,6 +316,59 @@ def _corner_distance(a, b, shape) -> float:
   rect = np.c_[homography.host_rect_corners(shape), np.ones(4)].T
   pa, pb = np.asarray(a, np.float64) @ rect, np.asarray(b, np.float64) @ rect
   return float(np.sqrt(np.mean(np.sum((pa[:2] / pa[2] - pb[:2] / pb[2]) ** 2, axis=0))))
+
+
+# A match is rejected (its frame LOST, then re-acquired as one) where it
+# mirrors the template (frame 0's corners turn clockwise on the image,
+# `track_inputs.template_geometry`) or puts a corner behind the camera (no
+# plane in front of the camera looks so), or, right after a frame not
+# LOST, where a side's
+# length changes more than _MAX_SIDE_CHANGE times from the last frame's.
+# Photographs moving under occlusion, blur or a change of light (240 wild
+# cases, 2026-11-28) were TRACKED 15-190 px off after such jumps (a side 0.07
+# to 0.6 of the last frame's, at NCC up to 0.96), where the true sides
+# changed under 3 % a frame.  A re-detection (RECOVERED), and a match after
+# a LOST frame, is held to the last TRACKED match's shape, sides scaled by
+# their mean, within _MAX_SHAPE_CHANGE times _SHAPE_DRIFT per frame since a
+# frame not LOST (a target can turn while it is hidden): detections there
+# lay 58-75 px off with a side 0.08-0.33 of the others' share.
+_MAX_SIDE_CHANGE, _MAX_SHAPE_CHANGE, _SHAPE_DRIFT = 1.5, 2.0, 1.03
+
+
+_NEXT = np.array([1, 2, 3, 0])  # each corner's next, clockwise on the image
+
+
+def _sides(h: np.ndarray, rects: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+  """((R, 4, 2) the sides (corner i to corner i + 1), (R,) whether every corner has w > 0) of
+  the template corners `rects` (R, 4, 2) mapped by the homographies h (R, 3, 3); elementwise:
+  a product in OpenBLAS costs the device step's threads, a call of NumPy some µs."""
+  h = np.asarray(h, np.float64)
+  mapped = (h[:, None, :, 0] * rects[..., :1] + h[:, None, :, 1] * rects[..., 1:]
+            + h[:, None, :, 2])  # (R, 4, 3)
+  w = mapped[..., 2:]
+  in_front = np.all(w[..., 0] > 0, axis=1)
+  corners = mapped[..., :2] / np.where(w > 0, w, 1.0)
+  return corners[:, _NEXT] - corners, in_front
+
+
+def _plausible(h: np.ndarray, rects: np.ndarray, last: np.ndarray | None = None,
+               shape_only: bool = False, slack=1.0) -> np.ndarray:
+  """(R,) whether the matches h (R, 3, 3) of templates with corners `rects` (R, 4, 2) keep every
+  corner in front (w > 0) and turn them clockwise as frame 0 does (not mirrored), and, given
+  homographies `last` (R, 3, 3), change no side's length more than `_MAX_SIDE_CHANGE` times
+  from theirs (`shape_only`: the sides scaled by their mean, `_MAX_SHAPE_CHANGE`), times
+  `slack` (R,) or a scalar."""
+  sides, in_front = _sides(h, rects)
+  turns = sides[..., 0] * sides[:, _NEXT, 1] - sides[..., 1] * sides[:, _NEXT, 0]
+  kept = in_front & np.all(turns > 0, axis=1)
+  if last is None:
+    return kept
+  lengths = [np.sqrt(np.sum(a * a, axis=-1)) for a in (sides, _sides(last, rects)[0])]
+  if shape_only:
+    lengths = [a / np.maximum(np.mean(a, axis=1, keepdims=True), 1e-9) for a in lengths]
+  change = lengths[0] / np.maximum(lengths[1], 1e-9)
+  bound = (_MAX_SHAPE_CHANGE if shape_only else _MAX_SIDE_CHANGE) * np.reshape(slack, (-1, 1))
+  return kept & np.all((change <= bound) & (change >= 1 / bound), axis=1)
 
 
 def _inside_share(h, shape, frame_shape) -> float:
@@ -475,8 +531,32 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
       if config.coast and _leaving(recent, r, shape, images[r].shape):
         _follow_part(carry, out, geometry, images[r], templates_[r], r, either_sign)
   for r, (f, status) in found.items():
-    _adopt(carry, before, out, recent, geometry, r, f, status)
+    if _kept_shape(recent, r, f.homography, status):
+      _adopt(carry, before, out, recent, geometry, r, f, status)
+    else:
+      _keep_lost(carry, before, out, recent, geometry, config, r, templates_[r].shape,
+                 images[r].shape)
   return sharding.split(carry, mesh), out, shares
+
+
+def _kept_shape(recent: _Recent, r: int, h, status: TrackStatus) -> bool:
+  """Whether region r's match h (3, 3) is `_plausible` (`_plausible_steps`; a detection,
+  RECOVERED, as after a LOST frame)."""
+  return bool(_plausible_steps(np.asarray(h, np.float64)[None], recent, slice(r, r + 1),
+                               status != TrackStatus.RECOVERED)[0])
+
+
+def _plausible_steps(h: np.ndarray, recent: _Recent, regions: slice, follows=True) -> np.ndarray:
+  """(R,) whether the matches h (R, 3, 3) of `regions` are `_plausible`: against the last frame's
+  homographies right after a frame not LOST (and where `follows`), else against the shape of
+  the last TRACKED ones, `_SHAPE_DRIFT` looser a frame since one not LOST."""
+  rects, gap = recent.rects[regions], recent.gap[regions]
+  steps = _plausible(h, rects, recent.homography[regions])
+  if follows and not np.any(gap):
+    return steps
+  return np.where((gap == 0) & follows, steps,
+                  _plausible(h, rects, recent.tracked[regions], shape_only=True,
+                             slack=_SHAPE_DRIFT ** gap))
 
 
 def _adopt(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geometry, r: int, found,
@@ -609,7 +689,8 @@ def _dealiased(carry: _Carry, before: _Carry, out: dict, regions, recent: _Recen
       moved = h @ np.array([[1.0, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1]])
       found = aligning.align(images[r], template, moved, config=detection.bounded(config),
                              key=index)
-      if not float(found.quality) > out["quality"][r]:
+      if (not float(found.quality) > out["quality"][r]
+          or not _kept_shape(recent, r, found.homography, TrackStatus.TRACKED)):
         break
       _adopt(carry, before, out, recent, geometry, r, found, out["status"][r])
     else:
@@ -620,6 +701,25 @@ def _dealiased(carry: _Carry, before: _Carry, out: dict, regions, recent: _Recen
     if ((here > -1.0 and np.any(scores[apart] >= here - _ALIAS_TIE))
         or out["quality"][r] < best[r] - _margin(config)):
       out["status"][r] = TrackStatus.DOUBTFUL
+  return sharding.split(carry, mesh), out
+
+
+def _rejected(carry: _Carry, before: _Carry, out: dict, regions, recent: _Recent, frame_shape,
+              mesh):
+  """(carry, out) with the frame step's matches of `regions` (indices), not `_plausible`, LOST as
+  the step makes a frame LOST: the estimate, reference and homography of the frame before, no
+  velocity, quality -inf (no admissible warp)."""
+  out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
+  carry, before = (_Carry(*(np.array(leaf) for leaf in sharding.to_host(c)))
+                   for c in (carry, before))
+  for r in regions:
+    carry.estimate[r] = out["estimate"][r] = before.estimate[r]
+    carry.velocity[r] = np.eye(carry.velocity.shape[-1], dtype=np.float32)
+    carry.reference[r] = before.reference[r]
+    out["homography"][r] = recent.homography[r]
+    shape = recent.rects[r, 2, ::-1] + 1  # (rows, cols): the bottom-right corner's (y, x) + 1
+    out["inside"][r] = _inside_share(recent.homography[r], shape, frame_shape)
+    out["status"][r], out["quality"][r] = TrackStatus.LOST, -np.inf
   return sharding.split(carry, mesh), out
 
 
@@ -661,7 +761,8 @@ def _moved(recent: _Recent, h: np.ndarray, status: np.ndarray) -> _Recent:
   before = np.where(kept, recent.before, np.where(step, recent.homography, h))
   after = np.where(kept, recent.after, h)
   tracked = np.where((status == TrackStatus.TRACKED)[:, None, None], h, recent.tracked)
-  return _Recent(h, before, after, np.where(lost, recent.gap + 1, 0), tracked)
+  return recent._replace(homography=h, before=before, after=after,
+                         gap=np.where(lost, recent.gap + 1, 0), tracked=tracked)
 
 
 # `track` moves the per-frame outputs to the host in chunks of this many
@@ -830,8 +931,9 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
       num_evaluations=np.zeros(count, np.int32), inside=np.ones(count, np.float32)).items()}]
   outputs, shares, doubt, peak = [], {}, {}, np.full(count, -np.inf)
   reacquire = (config.redetect or config.coast) and config.method == "pso"
+  rects = np.stack([homography.host_rect_corners(shape) for shape in shapes])  # (R, 4, 2)
   recent = _Recent(*[starts.astype(np.float64)] * 3, np.zeros(count, np.int64),
-                   starts.astype(np.float64))
+                   starts.astype(np.float64), rects)
   # Regions the last frame step matched less than _MIN_IN_FRAME inside the frame: checked
   # on the next frame too, wherever its step matches them (a region 39 % inside under 12 px
   # of blur was matched 42 px off, wholly inside, at NCC 0.8+: test_detect).
@@ -843,7 +945,12 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
     out, images, index, before = step
     if not reacquire:
       return carry, out
-    host = sharding.to_host({k: out[k] for k in ("status", "inside", "quality")})
+    host = sharding.to_host({k: out[k] for k in ("status", "inside", "quality", "homography")})
+    plausible = _plausible_steps(host["homography"][:count], recent, slice(None))
+    rejected = np.flatnonzero((host["status"][:count] != TrackStatus.LOST) & ~plausible)
+    if rejected.size:
+      carry, out = _rejected(carry, before, out, rejected, recent, frame_shape, mesh)
+      host = sharding.to_host({k: out[k] for k in ("status", "inside", "quality")})
     check = host["status"][:count] == TrackStatus.LOST
     if config.redetect:
       check |= (host["inside"][:count] < _MIN_IN_FRAME) | edge
