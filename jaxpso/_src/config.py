@@ -170,7 +170,9 @@ class TrackConfig:
       it; a detection well under the region's best quality is DOUBTFUL,
       and challenged by `detect` on the next frames.  A periodic template's
       match moves to the template shift that correlates best around it,
-      DOUBTFUL where another one does as well (`periodic`).  Off: a
+      DOUBTFUL where another one does as well (`periodic`).  With it or
+      `coast`, a match mirrored, folded or whose sides jump more than 1.5×
+      in a frame is LOST, then re-acquired as above.  Off: a
       lost region keeps its last good estimate until the recovery search
       around it finds the target again.
     max_evaluations (int or None): the budget of one `align` call, or of
