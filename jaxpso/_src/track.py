@@ -465,9 +465,7 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   """
   either_sign = config.similarity == "mi"
   bounded = detection.bounded(config)
-  out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
-  carry, before = (_Carry(*(np.array(leaf) for leaf in sharding.to_host(c)))
-                   for c in (carry, before))
+  carry, before, out = _host_copies(carry, before, out)
   found, shares = {}, {}
   for r in (int(r) for r in check):
     shape = templates_[r].shape
@@ -557,6 +555,13 @@ def _plausible_steps(h: np.ndarray, recent: _Recent, regions: slice, follows=Tru
   return np.where((gap == 0) & follows, steps,
                   _plausible(h, rects, recent.tracked[regions], shape_only=True,
                              slack=_SHAPE_DRIFT ** gap))
+
+
+def _host_copies(carry: _Carry, before: _Carry, out: dict) -> tuple[_Carry, _Carry, dict]:
+  """Writable NumPy copies of a frame step's carry, the carry before it and its outputs."""
+  carry, before = (_Carry(*(np.array(leaf) for leaf in sharding.to_host(c)))
+                   for c in (carry, before))
+  return carry, before, {k: np.array(v) for k, v in sharding.to_host(out).items()}
 
 
 def _adopt(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geometry, r: int, found,
@@ -674,9 +679,7 @@ def _dealiased(carry: _Carry, before: _Carry, out: dict, regions, recent: _Recen
   template shift, DOUBTFUL where that is not clear (`_ALIAS_TIE`) or their quality falls a
   `_margin` short of `best` (R,); frame `index` seeds `align`."""
   either_sign = config.similarity == "mi"
-  out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
-  carry, before = (_Carry(*(np.array(leaf) for leaf in sharding.to_host(c)))
-                   for c in (carry, before))
+  carry, before, out = _host_copies(carry, before, out)
   for r in regions:
     template = templates_[r]
     d = periodic.reach(template.shape)
@@ -704,21 +707,18 @@ def _dealiased(carry: _Carry, before: _Carry, out: dict, regions, recent: _Recen
   return sharding.split(carry, mesh), out
 
 
-def _rejected(carry: _Carry, before: _Carry, out: dict, regions, recent: _Recent, frame_shape,
-              mesh):
+def _rejected(carry: _Carry, before: _Carry, out: dict, regions, recent: _Recent, shapes: list,
+              frame_shape, mesh):
   """(carry, out) with the frame step's matches of `regions` (indices), not `_plausible`, LOST as
   the step makes a frame LOST: the estimate, reference and homography of the frame before, no
-  velocity, quality -inf (no admissible warp)."""
-  out = {k: np.array(v) for k, v in sharding.to_host(out).items()}
-  carry, before = (_Carry(*(np.array(leaf) for leaf in sharding.to_host(c)))
-                   for c in (carry, before))
+  velocity, quality -inf (no admissible warp); `shapes` the templates' (rows, cols)."""
+  carry, before, out = _host_copies(carry, before, out)
   for r in regions:
     carry.estimate[r] = out["estimate"][r] = before.estimate[r]
     carry.velocity[r] = np.eye(carry.velocity.shape[-1], dtype=np.float32)
     carry.reference[r] = before.reference[r]
     out["homography"][r] = recent.homography[r]
-    shape = recent.rects[r, 2, ::-1] + 1  # (rows, cols): the bottom-right corner's (y, x) + 1
-    out["inside"][r] = _inside_share(recent.homography[r], shape, frame_shape)
+    out["inside"][r] = _inside_share(recent.homography[r], shapes[r], frame_shape)
     out["status"][r], out["quality"][r] = TrackStatus.LOST, -np.inf
   return sharding.split(carry, mesh), out
 
@@ -949,7 +949,7 @@ def track(frames, roi, *, config: TrackConfig = TrackConfig(), key=0, camera=Non
     plausible = _plausible_steps(host["homography"][:count], recent, slice(None))
     rejected = np.flatnonzero((host["status"][:count] != TrackStatus.LOST) & ~plausible)
     if rejected.size:
-      carry, out = _rejected(carry, before, out, rejected, recent, frame_shape, mesh)
+      carry, out = _rejected(carry, before, out, rejected, recent, shapes, frame_shape, mesh)
       host = sharding.to_host({k: out[k] for k in ("status", "inside", "quality")})
     check = host["status"][:count] == TrackStatus.LOST
     if config.redetect:
