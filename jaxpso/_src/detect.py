@@ -12,7 +12,10 @@ millisecond per map).  A template whose inner square is flat at that level
 (its telling edges lie near its rim) is correlated whole instead, over its
 rotated footprint.  The best peaks, one per rotation and scale, merged
 where they name one place and ranked again on the next finer level, are the
-candidate basins.  Each candidate is then a start of `align` (Gauss–Newton
+candidate basins.  An elongated template's inner disc places it but tells
+its rotation and scale poorly: around each candidate a grid of rotations and
+scales is scored by correlating the whole template, smoothed, and the best
+two are its starts.  Each candidate is then a start of `align` (Gauss–Newton
 from the coarsest level, then from level 1, the swarm where those fall
 short), best first, until one reaches
 `TrackConfig.accept_quality`; the result is the candidate of highest quality.
@@ -45,6 +48,21 @@ _PATCH_PX = 12.0
 # the rim) is correlated whole, over its rotated footprint (OpenCV's masked
 # correlation, about 5× the cost of a map).
 _FLAT_MIDDLE = 0.5
+# The inner disc of a template whose long side exceeds _ELONGATED times its
+# short one places it but tells its rotation and scale poorly: at 6:1
+# (benchmarks/detection.py --aspect 6, seed 0) the first candidate lay at the
+# right place in 26 of 30 trials, its rotation up to 22° and its scale up to
+# 1.6× off, and `align` (`bounded`) from it succeeded in 19 of 60.  Each
+# candidate of such a template is therefore varied over _VARIANT_STEPS steps
+# either way of scale (ratio) and rotation (degrees), and `align` starts from
+# the _VARIANTS_KEPT variants at which the image, mapped back onto the
+# template, correlates best with it, both smoothed by _VARIANT_SIGMA
+# template pixels: from the first candidate 32 of 60 (30 from the best
+# variant alone, 29 from the best 2 of a 3 × 3 grid of 8° and 2^(1/4));
+# scoring the 49 variants costs about 15 ms.
+_ELONGATED = 2.0
+_VARIANT_STEPS, _VARIANT_RATIO, _VARIANT_DEG = 3, 2.0 ** (1 / 8), 4.0
+_VARIANTS_KEPT, _VARIANT_SIGMA = 2, 4.0
 # Grid steps: 15° of rotation and a factor 2^(1/3) of scale move the patch's
 # rim by about 1.6 px of its level, inside the correlation peak.
 _ANGLE_STEP, _SCALE_RATIO = 15.0, 2.0 ** (1 / 3)
@@ -133,7 +151,8 @@ def _masked_correlation(picture: np.ndarray, patch: np.ndarray, first, last,
 
 def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: int,
                either_sign: bool, partial=None):
-  """Up to `count` (3, 3) float64 starts, best first, from the coarse correlation stage.
+  """Up to `count` (3, 3) float64 starts, best first, from the coarse correlation stage; for an
+  elongated template (`_ELONGATED`) `_VARIANTS_KEPT` per place (`likeliest`).
 
   image (H, W), template (h, w): float32 grey.  `scales`, `angles` (low,
   high): the ranges searched (angles in degrees); `either_sign`: anticorrelation
@@ -145,6 +164,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
 
   rows, cols = template.shape
   disc = min(rows, cols) / math.sqrt(2.0)  # the side of the square inside the inscribed disc
+  elongated = max(rows, cols) > _ELONGATED * min(rows, cols)
   top, left = (int((n - disc) / 2) for n in (rows, cols))  # the inner square's corner
   levels = [np.ascontiguousarray(image, np.float32)]
   lowpassed = {}  # sigma → (low-passed template, flat middle), shared by its rotations
@@ -258,7 +278,26 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
     ranked = sorted((refine(peak + (_ANGLE_STEP / 2, _SCALE_RATIO ** 0.5), 1) for peak in chosen),
                     key=lambda c: -c[0])
     finished = [refine(c, _REFINE_LEVELS - 1) for c in ranked[:wanted]]
-    return [_similarity(c[1], c[2], c[3], template.shape) for c in finished]
+    if not elongated or border:
+      return [_similarity(c[1], c[2], c[3], template.shape) for c in finished]
+    steps = range(-_VARIANT_STEPS, _VARIANT_STEPS + 1)
+    return [h for c in finished for h in likeliest(
+        [_similarity(c[1], c[2] * _VARIANT_RATIO ** i, c[3] + _VARIANT_DEG * j, template.shape)
+         for i in steps for j in steps])]
+
+  def likeliest(starts):
+    """The `_VARIANTS_KEPT` of `starts` ((3, 3) each) at which the image, mapped back onto the
+    template, correlates best with it, both smoothed by `_VARIANT_SIGMA` template pixels."""
+    smooth = cv2.GaussianBlur(template, (0, 0), _VARIANT_SIGMA)
+    scores = []
+    for h in starts:
+      back, inside = visibility.mapped_back(levels[0], h, (cols, rows))
+      inside = inside > 0.999
+      back = cv2.GaussianBlur(back, (0, 0), _VARIANT_SIGMA)
+      scores.append(visibility.correlation(smooth[inside], back[inside], either_sign)
+                    if inside.sum() >= 0.25 * rows * cols else -1.0)
+    order = [i for i in np.argsort(scores, kind="stable")[::-1] if i != len(starts) // 2]
+    return [starts[len(starts) // 2]] + [starts[i] for i in order[:_VARIANTS_KEPT - 1]]
 
   return starts(count, False, scales, angles) + (
       starts(_PARTIAL_CANDIDATES, True, *partial) if partial is not None else [])
@@ -294,7 +333,9 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
     key: the swarm's seed (`align`'s).
     scales: (low, high) > 0: the template's size in the image relative to its own.
     angles: (low, high) in-plane rotation in degrees (at most a full turn).
-    candidates_tried: how many candidate places `align` refines at most.
+    candidates_tried: how many candidate places `align` refines at most (each
+      from two starts, of rotation and scale fitted there, where the
+      template's long side is over twice its short one).
     motion_blur: a candidate short of `accept_quality` is aligned again with
       the template smeared by the line of motion blur fitted to the image
       there (`blur.register_fitted`), and the better of the two counts.
