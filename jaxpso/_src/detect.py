@@ -34,9 +34,11 @@ import numpy as np
 
 from jaxpso._src import blur
 from jaxpso._src import checks
+from jaxpso._src import template as templates
 from jaxpso._src import visible as visibility
 from jaxpso._src.align import AlignResult
 from jaxpso._src.align import align
+from jaxpso._src.config import AUTO_LEVELS
 from jaxpso._src.config import TrackConfig
 
 # The template's inner disc spans about this many pixels of the level it is
@@ -64,6 +66,14 @@ _FLAT_MIDDLE = 0.5
 # nine, whose `align`s cost 4× the time.
 _ELONGATED = 2.0
 _VARIANT_STEPS, _VARIANT_RATIO, _VARIANT_DEG, _VARIANT_SIGMA = 3, 2.0 ** (1 / 8), 4.0, 4.0
+# `align` refines an elongated template's starts on as many pyramid levels as
+# keep its short side at least this many pixels (by default
+# `config.COARSEST_PX`, 12, and 1-2 levels for most of them): from the first
+# candidate's two starts at 6:1, 34 of 60 succeeded against 32, in 33 ms
+# against 51 (the swarm searches a coarser level); at 3:1 50 and 50, 23 ms
+# against 32.  Detection: 6:1 57 → 61 % (MI), 58 → 61 % (NCC); 3:1 91 and
+# 91 → 89 %.
+_ELONGATED_COARSEST_PX = 6.0
 # Grid steps: 15° of rotation and a factor 2^(1/3) of scale move the patch's
 # rim by about 1.6 px of its level, inside the correlation peak.
 _ANGLE_STEP, _SCALE_RATIO = 15.0, 2.0 ** (1 / 3)
@@ -165,7 +175,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
 
   rows, cols = template.shape
   disc = min(rows, cols) / math.sqrt(2.0)  # the side of the square inside the inscribed disc
-  elongated = max(rows, cols) > _ELONGATED * min(rows, cols)
+  elongated = _elongated(template.shape)
   top, left = (int((n - disc) / 2) for n in (rows, cols))  # the inner square's corner
   levels = [np.ascontiguousarray(image, np.float32)]
   lowpassed = {}  # sigma → (low-passed template, flat middle), shared by its rotations
@@ -304,6 +314,22 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
       starts(_PARTIAL_CANDIDATES, True, *partial) if partial is not None else [])
 
 
+def _elongated(shape) -> bool:
+  """Whether a template of `shape` (h, w) is longer than `_ELONGATED` times its width."""
+  return max(shape) > _ELONGATED * min(shape)
+
+
+def _deeper(config: TrackConfig, template: np.ndarray) -> TrackConfig:
+  """`config` with as many levels as keep the short side of the elongated `template` (h, w) at
+  least `_ELONGATED_COARSEST_PX` pixels and show its texture, where its levels are automatic."""
+  if config.levels is not None:
+    return config
+  levels = 1
+  while levels < AUTO_LEVELS and min(template.shape) / 2 ** levels >= _ELONGATED_COARSEST_PX:
+    levels += 1
+  return dataclasses.replace(config, levels=templates.textured_levels(template, levels))
+
+
 def bounded(config: TrackConfig) -> TrackConfig:
   """`config` whose `align` runs Gauss–Newton from the start (from the coarsest level, then from
   level 1), then one quick swarm whose result stands whatever its quality.
@@ -392,6 +418,8 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
   either_sign = _EITHER_SIGN[config.similarity]
   starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign, partial)
   quick = bounded(config)
+  if _elongated(patch.shape):
+    quick = _deeper(quick, patch)
   accept = math.inf if config.accept_quality is None else config.accept_quality
   best = None
   for start in starts:
