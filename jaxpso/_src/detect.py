@@ -14,8 +14,9 @@ rotated footprint.  The best peaks, one per rotation and scale, merged
 where they name one place and ranked again on the next finer level, are the
 candidate basins.  An elongated template's inner disc places it but tells
 its rotation and scale poorly: around each candidate a grid of rotations and
-scales is scored by correlating the whole template, smoothed, and the best
-two are its starts.  Each candidate is then a start of `align` (Gauss–Newton
+scales is scored by correlating the whole template, smoothed; the candidate's
+own start and the best of them are refined on a deeper pyramid than the
+template's default.  Each candidate is then a start of `align` (Gauss–Newton
 from the coarsest level, then from level 1, the swarm where those fall
 short), best first, until one reaches
 `TrackConfig.accept_quality`; the result is the candidate of highest quality.
