@@ -130,6 +130,26 @@ def test_detect_refines_an_elongated_template_on_a_deeper_pyramid(scene, window,
   assert _error(found.homography, truth, template.shape) < 0.5
 
 
+def test_detect_keeps_the_levels_a_user_sets(scene, monkeypatch):
+  """The deeper pyramid replaces automatic levels only: `TrackConfig(levels=1)` reaches `align`
+  as it is, and without it an elongated template's refinement gets more levels than its
+  default (a 30×180 strip: 2 by default, 3 with its short side down to 6 px)."""
+  _, background = scene
+  template = jaxpso.data.load_image("camera")[100:130, 150:330].copy()
+  truth = _placed(template.shape, np.array([160.0, 120.0]), 1.0, 20.0)
+  frame = _frame(template, truth, background)
+  seen = []
+  real = detection.align
+  monkeypatch.setattr(detection, "align", lambda *a, config, **k: (
+      seen.append(config.levels), real(*a, config=config, **k))[1])
+  jaxpso.detect(frame, template, config=jaxpso.TrackConfig(levels=1))
+  assert seen and set(seen) == {1}
+  seen.clear()
+  jaxpso.detect(frame, template)
+  default = jaxpso.TrackConfig().for_template(template.shape, template).levels
+  assert default == 2 and set(seen) == {3}
+
+
 def test_detect_says_why_it_finds_no_place(scene):
   """A template textured only at the finest scale (a 1 px checkerboard, std 0.02) is flat once
   low-passed to be shrunk: no map can be correlated, and the error says why."""
