@@ -285,18 +285,21 @@ class TrackConfig:
       return HOPELESS_QUALITY[self.similarity]
     return self.hopeless_quality
 
-  def for_template(self, shape, template: np.ndarray | None = None) -> "TrackConfig":
-    """This config with `levels` chosen for a template of `shape` (h, w) when it is None.
+  def for_template(self, shape, template: np.ndarray | None = None,
+                   coarsest: float = COARSEST_PX) -> "TrackConfig":
+    """This config with `levels` chosen for a template of `shape` (h, w) when it is None: as
+    many as keep its shorter side at least `coarsest` pixels.
 
     Given the template's (h, w) pixels, the levels also end above the first
     that shows none of its texture (`template.textured_levels`).
     """
     if self.levels is not None:
       return self
-    config = _with_levels(self, tuple(shape))
+    config = _with_levels(self, tuple(shape), coarsest=coarsest)
     if template is None:
       return config
-    return _with_levels(self, tuple(shape), templates.textured_levels(template, config.levels))
+    return _with_levels(self, tuple(shape), templates.textured_levels(template, config.levels),
+                        coarsest)
 
   def pso_config(self) -> pso.PSOConfig:
     """The swarm's settings (batched loss over the whole swarm)."""
@@ -353,11 +356,12 @@ def _statics(config: TrackConfig) -> TrackConfig:
 
 
 @functools.lru_cache(maxsize=64)
-def _with_levels(config: TrackConfig, shape: tuple, most: int = AUTO_LEVELS) -> TrackConfig:
+def _with_levels(config: TrackConfig, shape: tuple, most: int = AUTO_LEVELS,
+                 coarsest: float = COARSEST_PX) -> TrackConfig:
   """`TrackConfig.for_template` with at most `most` levels, cached (`dataclasses.replace`
   re-validates the config)."""
   levels = 1
-  while levels < min(most, AUTO_LEVELS) and min(shape) / 2 ** levels >= COARSEST_PX:
+  while levels < min(most, AUTO_LEVELS) and min(shape) / 2 ** levels >= coarsest:
     levels += 1
   return dataclasses.replace(config, levels=levels)
 

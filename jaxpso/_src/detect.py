@@ -35,11 +35,9 @@ import numpy as np
 
 from jaxpso._src import blur
 from jaxpso._src import checks
-from jaxpso._src import template as templates
 from jaxpso._src import visible as visibility
 from jaxpso._src.align import AlignResult
 from jaxpso._src.align import align
-from jaxpso._src.config import AUTO_LEVELS
 from jaxpso._src.config import TrackConfig
 
 # The template's inner disc spans about this many pixels of the level it is
@@ -320,17 +318,6 @@ def _elongated(shape) -> bool:
   return max(shape) > _ELONGATED * min(shape)
 
 
-def _deeper(config: TrackConfig, template: np.ndarray) -> TrackConfig:
-  """`config` with as many levels as keep the short side of the elongated `template` (h, w) at
-  least `_ELONGATED_COARSEST_PX` pixels and show its texture, where its levels are automatic."""
-  if config.levels is not None:
-    return config
-  levels = 1
-  while levels < AUTO_LEVELS and min(template.shape) / 2 ** levels >= _ELONGATED_COARSEST_PX:
-    levels += 1
-  return dataclasses.replace(config, levels=templates.textured_levels(template, levels))
-
-
 def bounded(config: TrackConfig) -> TrackConfig:
   """`config` whose `align` runs Gauss–Newton from the start (from the coarsest level, then from
   level 1), then one quick swarm whose result stands whatever its quality.
@@ -419,8 +406,8 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
   either_sign = _EITHER_SIGN[config.similarity]
   starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign, partial)
   quick = bounded(config)
-  if _elongated(patch.shape):
-    quick = _deeper(quick, patch)
+  if _elongated(patch.shape):  # automatic levels go deeper (`_ELONGATED_COARSEST_PX`)
+    quick = quick.for_template(patch.shape, patch, coarsest=_ELONGATED_COARSEST_PX)
   accept = math.inf if config.accept_quality is None else config.accept_quality
   best = None
   for start in starts:
