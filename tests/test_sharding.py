@@ -31,6 +31,7 @@ def _checks():
   from jaxpso import pso
   from jaxpso._src import atlas
   from jaxpso._src import batching
+  from jaxpso._src import programs
   from jaxpso._src import sharding
   from jaxpso._src import template as templates
   from jaxpso._src import track as track_module
@@ -55,67 +56,74 @@ def _checks():
   assert shards(split.state.x) == {d: (5, 16) for d in devices}
   print("pso", flush=True)
 
-  # Three regions tracked on one device, on the four (3 used) and on two (padded to 4).
+  # Three regions tracked on one device and on several: on the four (3 used)
+  # for NCC, on two (padded to 4) for MI with prediction; the MI batch also
+  # equals its last region tracked alone.  Each device runs the one-device
+  # program on its regions (`sharding.per_device`): bit-identical (NCC 4.8e-3
+  # px apart under XLA's SPMD partitioner, 1e-4 to 1.7e-3 px with divisions
+  # XLA turned into multiplications in some programs only;
+  # benchmarks/results/invariance.md).  One setting per similarity: each
+  # distinct program is a compilation of 10-30 s.
   sequence = jaxpso.synthetic.make_sequence(0, num_frames=4, frame_shape=(96, 128),
                                             roi_size=(32, 32))
   x, y, w, h = sequence.roi
   rois = np.array([sequence.roi, (x + 5, y - 3, w, h), (x - 4, y + 4, w, h)])
-  # Each device runs the one-device program on its regions (`sharding.per_device`):
-  # bit-identical (NCC 4.8e-3 px apart under XLA's SPMD partitioner, 1e-4 to
-  # 1.7e-3 px with divisions XLA turned into multiplications in some programs
-  # only; benchmarks/results/invariance.md).
-  for similarity, predict in (("ncc", False), ("mi", True)):
-    config = jaxpso.TrackConfig(similarity=similarity, levels=2, swarm_size=8, max_iterations=5,
-                                search_radius=6.0, predict=predict)
+  configs = {similarity: jaxpso.TrackConfig(similarity=similarity, levels=2, swarm_size=8,
+                                            max_iterations=5, search_radius=6.0, predict=predict)
+             for similarity, predict in (("ncc", False), ("mi", True))}
+  for similarity, chosen in (("ncc", None), ("mi", devices[:2])):
+    config = configs[similarity]
     one = jaxpso.track(sequence.frames, rois, config=config, devices=devices[:1], key=keys)
-    for chosen in (None, devices[:2]):
-      many = jaxpso.track(sequence.frames, rois, config=config, devices=chosen, key=keys)
-      np.testing.assert_array_equal(many.homographies, one.homographies)
-      np.testing.assert_array_equal(many.status, one.status)
-    alone = jaxpso.track(sequence.frames, rois[2], config=config, key=keys[2])
-    np.testing.assert_array_equal(alone.homographies, one.homographies[2])
-  config = jaxpso.TrackConfig(similarity="ncc", levels=2, swarm_size=8, max_iterations=5,
-                              search_radius=6.0)
+    many = jaxpso.track(sequence.frames, rois, config=config, devices=chosen, key=keys)
+    np.testing.assert_array_equal(many.homographies, one.homographies)
+    np.testing.assert_array_equal(many.status, one.status)
+  alone = jaxpso.track(sequence.frames, rois[2], config=configs["mi"], key=keys[2])
+  np.testing.assert_array_equal(alone.homographies, one.homographies[2])
   # A lone region stays where JAX puts it (a one-device mesh among several cost
   # it 1.3–1.4× its time per frame); named devices are honoured.
   assert sharding.batch_mesh(None, 1) is None
   assert list(sharding.batch_mesh(devices[1:2], 1).devices) == [devices[1]]
-  # The frame step keeps the regions split: each device's carry holds its region.
-  mesh = sharding.batch_mesh(None, 4)
+  # The frame step keeps the regions split: each device's carry holds its
+  # region.  The step is the NCC track's above (its mesh, statics and
+  # shapes), so no program is compiled for it.
+  config = configs["ncc"]
+  mesh = sharding.batch_mesh(None, 3)
   template = np.ascontiguousarray(sequence.frames[0, :32, :32])
-  prepared = batching.stack([templates.prepare(template, 1, 0.25, 16)] * 4)
-  constants = sharding.split(track_module._Constants(prepared, None, np.zeros((4, 2), np.uint32),
-                                                     None), mesh)
-  assert shards(constants.template.values) == {d: (1, templates.capacity()) for d in devices}
-  eye = np.stack([np.eye(3, dtype=np.float32)] * 4)
-  carry = sharding.split(track_module._Carry(eye, eye, np.ones(4, np.int32), np.ones(4, np.float32)), mesh)
-  image = sharding.replicate(atlas.build(np.asarray(sequence.frames[1]), 1), mesh)
-  knobs = sharding.replicate(jax.tree.map(jnp.asarray, config.knobs()), mesh)
-  carry, out = track_module._frame_step(carry, image, constants, knobs, config=config.statics(),
-                                        mesh=mesh)
-  assert shards(carry.estimate) == {d: (1, 3, 3) for d in devices}
-  assert shards(out["quality"]) == {d: (1,) for d in devices}
+  statics = config.statics()
+  prepared = batching.stack([templates.prepared(template, 2, config.pixels, config.bins,
+                                                statics.resolution)] * 3)
+  constants = sharding.split(track_module._Constants(
+      prepared, None, batching.element_seeds(keys, 3, True), None), mesh)
+  assert shards(constants.template.values) == {d: (1, templates.capacity()) for d in devices[:3]}
+  eye = np.stack([np.eye(3, dtype=np.float32)] * 3)
+  carry = sharding.split(track_module._Carry(eye, eye, np.ones(3, np.int32),
+                                             np.ones(3, np.float32)), mesh)
+  frame_shape = sequence.frames.shape[1:]
+  capacity = atlas.capacity(sum(a * b for a, b in atlas.level_shapes(frame_shape, 2)))
+  image = sharding.replicate(atlas.build(np.asarray(sequence.frames[1]), 2, capacity), mesh)
+  knobs = sharding.replicate(config.knobs(), mesh)
+  before = programs.counts()["compiled"]
+  carry, out = track_module._frame_step(carry, image, constants, knobs, config=statics, mesh=mesh)
+  assert programs.counts()["compiled"] == before
+  assert shards(carry.estimate) == {d: (1, 3, 3) for d in devices[:3]}
+  assert shards(out["quality"]) == {d: (1,) for d in devices[:3]}
   print("track", flush=True)
 
-  # Three alignments on two devices (padded to 4) equal them on one.
+  # Three alignments on two devices (padded to 4) equal them on one (each
+  # equals its alignment alone: tests/test_batch.py).
   image = sequence.frames[0]
   starts = np.stack([np.float32([[1, 0, x + dx], [0, 1, y + dy], [0, 0, 1]])
                      for dx, dy in ((1, -1), (-2, 1), (0, 2))])
-  templates = np.stack([image[y:y + 32, x:x + 32]] * 3)
-  one = jaxpso.align(np.stack([image] * 3), templates, starts, config=config, devices=devices[:1],
-                     key=keys)
-  for chosen in (devices[:2], None):
-    many = jaxpso.align(np.stack([image] * 3), templates, starts, config=config, devices=chosen,
-                        key=keys)
-    for a, b in zip(one, many):
-      np.testing.assert_array_equal(a, b)
-  alone = jaxpso.align(image, templates[1], starts[1], config=config, key=keys[1])
-  np.testing.assert_array_equal(alone.homography, one.homography[1])
+  templates_ = np.stack([image[y:y + 32, x:x + 32]] * 3)
+  one, many = (jaxpso.align(np.stack([image] * 3), templates_, starts, config=config, devices=d,
+                            key=keys) for d in (devices[:1], devices[:2]))
+  for a, b in zip(one, many):
+    np.testing.assert_array_equal(a, b)
   # A gradient baseline's batch is split per device the same way: equal
   # within 1e-3 px, not bit for bit (its solvers round an ulp apart across
   # devices; benchmarks/results/invariance.md).
   inverse = jaxpso.TrackConfig(method="ic", similarity="ssd", levels=2)
-  one, two = (jaxpso.align(np.stack([image] * 3), templates, starts, config=inverse, devices=d)
+  one, two = (jaxpso.align(np.stack([image] * 3), templates_, starts, config=inverse, devices=d)
               for d in (devices[:1], devices[:2]))
   rect = np.float64([[0, 0, 1], [31, 0, 1], [31, 31, 1], [0, 31, 1]])
   corners = [np.einsum("nij,kj->nki", np.float64(r.homography), rect) for r in (one, two)]

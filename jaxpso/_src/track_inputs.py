@@ -47,6 +47,8 @@ def lockstep(sequences, count: int):
     raise ValueError(f"with sequences=True, frames must hold one sequence per region: {count}"
                      f" regions, {len(sequences)} sequences")
   iterators, lengths = zip(*(frame_iterator(s) for s in sequences))
+  if None not in lengths and len(set(lengths)) > 1:  # refused before anything is compiled
+    raise ValueError(f"the sequences must have one length: their lengths are {list(lengths)}")
 
   def steps():
     for index, step in enumerate(itertools.zip_longest(*iterators, fillvalue=_END)):
