@@ -58,10 +58,11 @@ def _alone(sequence, roi, **kwargs):
 def test_regions_of_one_video_track_as_they_do_alone():
   sequence = _sequence(0)
   x, y, w, h = sequence.roi
-  rois = np.array([sequence.roi, (x + 6, y - 4, w, h)])
+  # Three regions: the program of `test_regions_of_different_sizes_given_as_corners`.
+  rois = np.array([sequence.roi, (x + 6, y - 4, w, h), (x - 5, y + 3, w, h)])
   batch = jaxpso.track(sequence.frames, rois, config=CONFIG, key=0)
-  assert batch.homographies.shape == (2, 6, 3, 3) and batch.status.shape == (2, 6)
-  assert batch.corners.shape == (2, 6, 4, 2) and batch.poses is None
+  assert batch.homographies.shape == (3, 6, 3, 3) and batch.status.shape == (3, 6)
+  assert batch.corners.shape == (3, 6, 4, 2) and batch.poses is None
   alone = _alone(sequence, rois[0], key=0)  # region 0 has the key's own stream
   np.testing.assert_array_equal(batch.homographies[0], alone.homographies)
   np.testing.assert_array_equal(batch.status[0], alone.status)
@@ -256,11 +257,12 @@ def test_a_batch_of_alignments_equals_them_one_by_one():
 
 
 def test_an_align_batch_mixes_image_and_template_sizes_in_one_program():
-  # Templates of 40×56 and 64×64 px in images of two sizes: one program, and
-  # every element registers as it does alone.
+  # Templates of 40×56, 64×64 and 48×48 px in images of two sizes: one
+  # program (three elements: `test_a_batch_of_alignments_equals_them_one_by_one`'s),
+  # and every element registers as it does alone.
   rng = np.random.default_rng(7)
-  images = [IMAGE, np.ascontiguousarray(IMAGE[:300, :420])]
-  boxes = [(120, 90, 56, 40), (200, 150, 64, 64)]
+  images = [IMAGE, np.ascontiguousarray(IMAGE[:300, :420]), IMAGE]
+  boxes = [(120, 90, 56, 40), (200, 150, 64, 64), (250, 250, 48, 48)]
   templates, starts, truths = [], [], []
   for (x, y, w, h) in boxes:
     source = np.float32([[0, 0], [w - 1, 0], [w - 1, h - 1], [0, h - 1]])
