@@ -1,4 +1,5 @@
-"""Shared test set-up: one compilation cache for the run, and each module's programs dropped after it.
+"""Shared test set-up: one compilation cache for the run, each module's programs dropped after it,
+and the longest modules collected first.
 
 The suite's compiled programs go to a cache directory of its own (unless
 `JAXPSO_CACHE_DIR` names one), so that a module compiling a program another
@@ -26,14 +27,16 @@ def _drop_compiled_programs():
   programs.clear()
 
 
-
 # The longest modules, first: xdist hands whole modules to its two workers in
-# collection order, and the sharding test (one subprocess, 2.5 min) collected
-# last kept one worker busy 2.3 min after the other had finished (13 min 21 s
-# in all on 2026-11-29).  Measured per module on that run: track 298 s, align
-# 228 s, batch 163 s, sharding 147 s.
-_LONGEST_FIRST = ("tests/test_track.py", "tests/test_align.py", "tests/test_batch.py",
-                  "tests/test_sharding.py")
+# collection order (`--no-loadscope-reorder`; by default it puts the modules
+# with most tests first, and the sharding test, one test running a 2.5 min
+# subprocess, came last and kept one worker busy 2.3 min after the other had
+# finished, 13 min 21 s in all on 2026-11-29).  Measured per module on that
+# run: track 298 s, align 228 s, batch 163 s, sharding 147 s.  test_track and
+# test_align go to one worker, so that the `align` programs they share are
+# compiled once and loaded from the disk cache after.
+_LONGEST_FIRST = ("tests/test_track.py", "tests/test_sharding.py", "tests/test_align.py",
+                  "tests/test_batch.py")
 
 
 def pytest_collection_modifyitems(items):

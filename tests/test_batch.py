@@ -330,3 +330,16 @@ def test_one_key_per_element_gives_each_the_result_it_has_alone():
 def test_bad_batches_name_the_problem(call, match):
   with pytest.raises((ValueError, TypeError), match=match):
     call(_sequence(0))
+
+
+def test_sequences_of_different_lengths_are_refused_before_anything_is_compiled():
+  # Known lengths: refused at once (a frame step compiles for 15-25 s).  An
+  # iterator's length is unknown: refused where the shorter sequence ends.
+  s = _sequence(0)
+  before = programs_made()
+  with pytest.raises(ValueError, match=r"one length: their lengths are \[6, 4\]"):
+    jaxpso.track([s.frames, s.frames[:4]], np.array([s.roi] * 2), sequences=True)
+  assert programs_made() == before
+  with pytest.raises(ValueError, match="some end after 4 frames"):
+    jaxpso.track([s.frames, iter(s.frames[:4])], np.array([s.roi] * 2), sequences=True,
+                 config=CONFIG)
