@@ -32,11 +32,12 @@ def _drop_compiled_programs():
 # with most tests first, and the sharding test, one test running a 2.5 min
 # subprocess, came last and kept one worker busy 2.3 min after the other had
 # finished, 13 min 21 s in all on 2026-11-29).  Measured per module on that
-# run: track 298 s, align 228 s, batch 163 s, sharding 147 s.  test_track and
-# test_align go to one worker, so that the `align` programs they share are
-# compiled once and loaded from the disk cache after.
-_LONGEST_FIRST = ("tests/test_track.py", "tests/test_sharding.py", "tests/test_align.py",
-                  "tests/test_batch.py")
+# run: track 298 s, align 228 s, batch 163 s, sharding 147 s.  A worker takes
+# its next module once at most 2 of its tests are left, so the first worker
+# runs track then align (the `align` programs they share compile once, then
+# load from the disk cache), the second sharding, batch and the short modules.
+_LONGEST_FIRST = ("tests/test_track.py", "tests/test_sharding.py", "tests/test_batch.py",
+                  "tests/test_align.py")
 
 
 def pytest_collection_modifyitems(items):
