@@ -107,7 +107,7 @@ def test_a_batch_of_sequences_tracks_each_as_alone():
 def test_a_repeated_batch_adds_no_compiled_program():
   sequence = _sequence(0)
   x, y, w, h = sequence.roi
-  rois = np.array([sequence.roi, (x + 6, y - 4, w, h)])
+  rois = np.array([sequence.roi, (x + 6, y - 4, w, h), (x - 5, y + 3, w, h)])
   jaxpso.track(sequence.frames[:3], rois, config=CONFIG, key=1)
   size = programs_made()
   jaxpso.track(sequence.frames[2:], rois - np.array([2, 2, 0, 0]), config=CONFIG, key=2)
@@ -116,16 +116,17 @@ def test_a_repeated_batch_adds_no_compiled_program():
 
 def test_costly_searches_run_for_the_batch_only_when_a_region_needs_them():
   # Gauss–Newton alone is accepted on these small motions: no swarm runs, so
-  # no frame of the batch costs a swarm's evaluations.
+  # no frame of the batch costs a swarm's evaluations.  Three regions, as in
+  # the other batch tests here: one program for all of them.
   sequence = _sequence(0)
-  batch = jaxpso.track(sequence.frames, np.array([sequence.roi, sequence.roi]), config=CONFIG)
+  batch = jaxpso.track(sequence.frames, np.array([sequence.roi] * 3), config=CONFIG)
   assert batch.num_evaluations[:, 1:].max() < CONFIG.swarm_size
   # A region over a frame of noise needs the recovery; the other region keeps its own result.
   noisy = sequence.frames.copy()
   x, y, w, h = sequence.roi
   noisy[3, :, 80:] = np.random.default_rng(0).uniform(size=noisy[3, :, 80:].shape)
   left = (4, 30, 40, 40)
-  mixed = jaxpso.track(noisy, np.array([left, (110, 30, 40, 40)]), config=CONFIG)
+  mixed = jaxpso.track(noisy, np.array([left, (110, 30, 40, 40), (20, 40, 40, 40)]), config=CONFIG)
   alone = jaxpso.track(noisy, left, config=CONFIG)
   assert mixed.status[1, 3] == jaxpso.TrackStatus.LOST
   np.testing.assert_array_equal(mixed.homographies[0], alone.homographies)
