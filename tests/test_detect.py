@@ -150,6 +150,22 @@ def test_detect_keeps_the_levels_a_user_sets(scene, monkeypatch):
   assert default == 2 and set(seen) == {3}
 
 
+def test_detect_aligns_a_best_short_of_acceptance_again_with_the_full_search(scene, monkeypatch):
+  """A candidate 14 px and 20° off: its bounded alignment (one quick swarm, no retries) stops
+  25 px off at NCC 0.72; `align` with the caller's config from there finds the truth."""
+  template, background = scene
+  truth = _placed(80, np.array([200.0, 110.0]), 1.5, 150.0, tilt=[[4, -3], [0, 5], [-5, 0], [3, 2]])
+  start = _placed(80, np.array([214.0, 103.0]), 1.5, 170.0)
+  frame = _frame(template, truth, background)
+  monkeypatch.setattr(detection, "candidates", lambda *a, **k: [start])
+  config = jaxpso.TrackConfig(similarity="ncc")
+  found = jaxpso.detect(frame, template, config=config)
+  assert _error(found.homography, truth, 80) < 0.3 and float(found.quality) > 0.95
+  bounded = detection.search(frame, template, config, 0, detection.SCALES, detection.ANGLES, 1,
+                             None)
+  assert _error(bounded.homography, truth, 80) > 10.0 and float(bounded.quality) < 0.8
+
+
 def test_detect_says_why_it_finds_no_place(scene):
   """A template textured only at the finest scale (a 1 px checkerboard, std 0.02) is flat once
   low-passed to be shrunk: no map can be correlated, and the error says why."""
@@ -369,14 +385,16 @@ def test_detect_ranks_its_candidates_on_a_finer_level():
 
 @pytest.mark.parametrize("similarity", ["mi", "ncc"])
 def test_detect_partial_finds_a_template_partly_outside_the_image(scene, similarity):
-  """Two fifths of the template lie beyond the right edge: the whole-template search has no
-  place for it, the partial one correlates the part inside (`detect._masked_correlation`).
-  The corners outside rest on the pixels inside: measured 0.8 (MI) and 1.4 px (NCC) RMS."""
+  """Two fifths of the template lie beyond the right edge: the candidates wholly inside the
+  image have no place for it, the partial ones correlate the part inside
+  (`detect._masked_correlation`).  The corners outside rest on the pixels inside: measured
+  0.8 (MI) and 1.4 px (NCC) RMS."""
   template, background = scene
   truth = _placed(80, np.array([310.0, 120.0]), 1.1, 15.0)
   frame = _frame(template, truth, background)
   config = jaxpso.TrackConfig(similarity=similarity)
-  whole = jaxpso.detect(frame, template, config=config)
+  whole = detection.search(frame, template, config, 0, detection.SCALES, detection.ANGLES,
+                           detection.CANDIDATES, None)
   found = jaxpso.detect(frame, template, config=config, partial=True)
   assert _error(whole.homography, truth, 80) > 20.0
   assert _error(found.homography, truth, 80) < 2.0, _error(found.homography, truth, 80)
