@@ -152,15 +152,20 @@ def test_detect_keeps_the_levels_a_user_sets(scene, monkeypatch):
 
 def test_detect_aligns_a_best_short_of_acceptance_again_with_the_full_search(scene, monkeypatch):
   """A candidate 14 px and 20° off: its bounded alignment (one quick swarm, no retries) stops
-  25 px off at NCC 0.72; `align` with the caller's config from there finds the truth."""
+  25 px off at NCC 0.72; `align` with the caller's config from there finds the truth.  The
+  result counts the evaluations of both."""
   template, background = scene
   truth = _placed(80, np.array([200.0, 110.0]), 1.5, 150.0, tilt=[[4, -3], [0, 5], [-5, 0], [3, 2]])
   start = _placed(80, np.array([214.0, 103.0]), 1.5, 170.0)
   frame = _frame(template, truth, background)
   monkeypatch.setattr(detection, "candidates", lambda *a, **k: [start])
+  ran, real = [], detection.align
+  monkeypatch.setattr(detection, "align", lambda *a, **k: ran.append(real(*a, **k)) or ran[-1])
   config = jaxpso.TrackConfig(similarity="ncc")
   found = jaxpso.detect(frame, template, config=config)
   assert _error(found.homography, truth, 80) < 0.3 and float(found.quality) > 0.95
+  assert len(ran) == 2 and int(found.num_evaluations) == sum(int(r.num_evaluations) for r in ran)
+  assert int(found.num_iterations) == sum(int(r.num_iterations) for r in ran)
   bounded = detection.search(frame, template, config, 0, detection.SCALES, detection.ANGLES, 1,
                              None)
   assert _error(bounded.homography, truth, 80) > 10.0 and float(bounded.quality) < 0.8

@@ -32,6 +32,7 @@ from __future__ import annotations
 import dataclasses
 import math
 
+import jax.numpy as jnp
 import numpy as np
 
 from jaxpso._src import blur
@@ -374,7 +375,8 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
     `AlignResult` of the best candidate (highest quality); its status is
     `AlignStatus.NO_VALID_WARP` when no candidate could be scored, and
     `AlignStatus.NO_MATCH` when its quality stays under
-    `TrackConfig.hopeless_quality`.
+    `TrackConfig.hopeless_quality`; its `num_iterations` and
+    `num_evaluations` count every alignment `detect` ran, not the best's alone.
 
   Raises:
     ValueError: a template larger than the image, a flat template, an empty
@@ -413,20 +415,23 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
   a candidate's smeared alignment (`blur.register_fitted`) counts where its quality reaches
   this, None: none is tried; `partial`: the (scales, angles) ranges of the places partly
   outside the image also searched (`candidates`), None: none; `polish`: a best short of
-  `accept_quality` is aligned again from itself with `config` (see `CANDIDATES`).  None where no
-  place could be correlated (the template does not fit, or is flat at every scale)."""
+  `accept_quality` is aligned again from itself with `config` (see `CANDIDATES`).  Its counts
+  (`num_iterations`, `num_evaluations`) sum every alignment run.  None where no place could
+  be correlated (the template does not fit, or is flat at every scale)."""
   either_sign = _EITHER_SIGN[config.similarity]
   starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign, partial)
   if _elongated(patch.shape):  # automatic levels go deeper (`_ELONGATED_COARSEST_PX`)
     config = config.for_template(patch.shape, patch, coarsest=_ELONGATED_COARSEST_PX)
   quick = bounded(config)
   accept = math.inf if config.accept_quality is None else config.accept_quality
-  best = None
+  best, ran = None, []  # `ran`: every alignment's result, for the counts
   for start in starts:
     found = align(picture, patch, start, config=quick, key=key)
+    ran.append(found)
     if blurred_from is not None and float(found.quality) < accept:
       smeared = blur.register_fitted(picture, patch, np.asarray(found.homography), quick, key,
                                      either_sign)
+      ran += [] if smeared is None else [smeared]
       if (smeared is not None and float(smeared.quality) > float(found.quality)
           and float(smeared.quality) >= blurred_from):
         found = smeared
@@ -436,6 +441,11 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
       break
   if polish and best is not None and -math.inf < float(best.quality) < accept:
     again = align(picture, patch, best.homography, config=config, key=key)
+    ran.append(again)
     if float(again.quality) > float(best.quality):
       best = again
-  return best
+  if best is None:
+    return None
+  return best._replace(
+      num_iterations=jnp.asarray(sum(int(f.num_iterations) for f in ran), jnp.int32),
+      num_evaluations=jnp.asarray(sum(int(f.num_evaluations) for f in ran), jnp.int32))

@@ -86,7 +86,8 @@ class TrackResult(NamedTuple):
     status: (T,) int32 `TrackStatus`.
     poses: (T, 4, 4) frame-0 → frame camera poses for motion "plane", else None.
     num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0).
-    num_evaluations: (T,) similarity evaluations.
+    num_evaluations: (T,) similarity evaluations of the frame step and of a registration on
+      the host that replaced its match (a re-detection: every alignment `detect` ran).
     visible: (T,) the share of the region judged visible: where the whole
       template matched, the share of the estimate inside the frame
       (`homography.inside_share`); on a
