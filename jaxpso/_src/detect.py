@@ -100,14 +100,6 @@ _PARTIAL_CANDIDATES = 2
 # Places partly outside correlate on half a patch, and one corner of the
 # frame can top every map: each map gives this many places.
 _PARTIAL_PLACES = 4
-# `detect`'s best candidate, short of `accept_quality` after its bounded
-# alignment (one quick swarm, no retries), is aligned again from its own
-# estimate with the caller's config (retries, the full search; not in
-# `track`'s re-detection, where a region often is not in the frame at all).
-# detection.py, 2026-11-29 (--trials 100, seed 0): NCC's trial 81 went from
-# 5.8 px off at NCC 0.28 to 0.11 px at 0.88; trial 42 from 1.7 to 2.9 px, to
-# NCC's own optimum (`align` from the truth ends 3.0 px off); success 99 %
-# (MI) and 98 % (NCC) as before, medians within the host's noise.
 SCALES, ANGLES, CANDIDATES = (0.5, 2.0), (-180.0, 180.0), 4
 """`detect`'s default scale range, rotation range (degrees) and candidate places refined."""
 # With mutual information the image may be inverted (MI matches it):
@@ -415,9 +407,9 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
   a candidate's smeared alignment (`blur.register_fitted`) counts where its quality reaches
   this, None: none is tried; `partial`: the (scales, angles) ranges of the places partly
   outside the image also searched (`candidates`), None: none; `polish`: a best short of
-  `accept_quality` is aligned again from itself with `config` (see `CANDIDATES`).  Its counts
-  (`num_iterations`, `num_evaluations`) sum every alignment run.  None where no place could
-  be correlated (the template does not fit, or is flat at every scale)."""
+  `accept_quality` is aligned again from itself with `config` (retries, the full search).
+  Its counts (`num_iterations`, `num_evaluations`) sum every alignment run.  None where no
+  place could be correlated (the template does not fit, or is flat at every scale)."""
   either_sign = _EITHER_SIGN[config.similarity]
   starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign, partial)
   if _elongated(patch.shape):  # automatic levels go deeper (`_ELONGATED_COARSEST_PX`)
@@ -431,7 +423,8 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
     if blurred_from is not None and float(found.quality) < accept:
       smeared = blur.register_fitted(picture, patch, np.asarray(found.homography), quick, key,
                                      either_sign)
-      ran += [] if smeared is None else [smeared]
+      if smeared is not None:
+        ran.append(smeared)
       if (smeared is not None and float(smeared.quality) > float(found.quality)
           and float(smeared.quality) >= blurred_from):
         found = smeared
@@ -439,6 +432,11 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
       best = found
     if float(found.quality) >= accept:
       break
+  # The second alignment: detection.py, 2026-11-29 (--trials 100, seed 0), NCC's trial 81
+  # went from 5.8 px off at NCC 0.28 to 0.11 px at 0.88; trial 42 from 1.7 to 2.9 px, to
+  # NCC's own optimum (`align` from the truth ends 3.0 px off); success 99 % (MI) and 98 %
+  # (NCC) as before, medians within the host's noise.  Not in `track`'s re-detection
+  # (`polish` False), where a region often is not in the frame at all.
   if polish and best is not None and -math.inf < float(best.quality) < accept:
     again = align(picture, patch, best.homography, config=config, key=key)
     ran.append(again)
