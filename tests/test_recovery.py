@@ -117,3 +117,32 @@ def test_a_look_alike_detected_in_doubt_gives_way_to_the_target(similarity, repl
   assert (result.status[3:7] == jaxpso.TrackStatus.DOUBTFUL).all(), report
   assert result.status[7] == jaxpso.TrackStatus.RECOVERED and errors[7:].max() < 0.1, report
   assert (result.status[8:] == jaxpso.TrackStatus.TRACKED).all(), report
+
+
+def test_a_lost_frame_counts_the_alignments_run_on_the_host(monkeypatch):
+  # The first hidden frame of the smooth case: the frame step, the same
+  # with `redetect` off, then on the host the visible part and `detect`,
+  # none of them adopted (LOST).  The frame's counts are the step's plus
+  # every one of those alignments'.
+  from jaxpso._src import align as aligning
+  from jaxpso._src import detect as detection
+
+  sequence = jaxpso.synthetic.make_sequence(0, num_frames=NUM_FRAMES, frame_shape=FRAME_SHAPE,
+                                            roi_size=ROI_SIZE, occlusion=HIDDEN)
+  frames = sequence.frames[:HIDDEN[0] + 1]
+  alone = jaxpso.track(frames, sequence.roi, key=0, config=jaxpso.TrackConfig(redetect=False))
+  ran = []
+  original = aligning.align
+
+  def recorded(*args, **kwargs):
+    ran.append(original(*args, **kwargs))
+    return ran[-1]
+
+  monkeypatch.setattr(aligning, "align", recorded)
+  monkeypatch.setattr(detection, "align", recorded)
+  result = jaxpso.track(frames, sequence.roi, config=CONFIG, key=0)
+  assert result.status[-1] == alone.status[-1] == jaxpso.TrackStatus.LOST
+  assert len(ran) >= 2, len(ran)
+  for field in ("num_iterations", "num_evaluations"):
+    host = sum(int(getattr(found, field)) for found in ran)
+    assert getattr(result, field)[-1] == getattr(alone, field)[-1] + host, (field, host)

@@ -19,6 +19,8 @@ method, swarm) and is kept across processes (`jaxpso._src.programs`).
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import enum
 import functools
@@ -266,9 +268,40 @@ def align(image, template, init_homography, *, config: TrackConfig = TrackConfig
                              single=single, mesh=mesh)
   if mesh is not None and not all(a.is_fully_addressable for a in jax.tree.leaves(result)):
     result = sharding.to_host(result)  # spread over several processes (jax.distributed)
-  if single:
-    return result
-  return jax.tree.map(lambda a: a[:len(starts)], result) if len(result.score) > len(starts) else result
+  if not single and len(result.score) > len(starts):
+    result = jax.tree.map(lambda a: a[:len(starts)], result)
+  for spent in _TALLIES.get():
+    spent += (int(np.sum(result.num_iterations)), int(np.sum(result.num_evaluations)))
+  return result
+
+
+class Spent:
+  """The summed `num_iterations` and `num_evaluations` of the `align` calls in a `counted`
+  block (a batch's summed over its elements)."""
+
+  def __init__(self):
+    self.iterations = self.evaluations = 0
+
+  def __iadd__(self, counts):
+    self.iterations += counts[0]
+    self.evaluations += counts[1]
+    return self
+
+
+_TALLIES: contextvars.ContextVar[tuple[Spent, ...]] = contextvars.ContextVar("tallies",
+                                                                             default=())
+
+
+@contextlib.contextmanager
+def counted():
+  """A block whose `align` calls are counted: yields a `Spent` that each call in it adds to
+  (a call in nested blocks, to each)."""
+  spent = Spent()
+  token = _TALLIES.set(_TALLIES.get() + (spent,))
+  try:
+    yield spent
+  finally:
+    _TALLIES.reset(token)
 
 
 def _window(h, shape, image_shape, config: TrackConfig) -> tuple[int, int, int, int]:

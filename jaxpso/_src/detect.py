@@ -40,6 +40,7 @@ from jaxpso._src import checks
 from jaxpso._src import visible as visibility
 from jaxpso._src.align import AlignResult
 from jaxpso._src.align import align
+from jaxpso._src.align import counted
 from jaxpso._src.config import TrackConfig
 
 # The template's inner disc spans about this many pixels of the level it is
@@ -416,15 +417,34 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
     config = config.for_template(patch.shape, patch, coarsest=_ELONGATED_COARSEST_PX)
   quick = bounded(config)
   accept = math.inf if config.accept_quality is None else config.accept_quality
-  best, ran = None, []  # `ran`: every alignment's result, for the counts
+  with counted() as spent:
+    best = _best_of(picture, patch, starts, quick, key, blurred_from, accept, either_sign)
+    # The second alignment: detection.py, 2026-11-29 (--trials 100, seed 0), NCC's trial 81
+    # went from 5.8 px off at NCC 0.28 to 0.11 px at 0.88; trial 42 from 1.7 to 2.9 px, to
+    # NCC's own optimum (`align` from the truth ends 3.0 px off); success 99 % (MI) and 98 %
+    # (NCC) as before, medians within the host's noise.  Not in `track`'s re-detection
+    # (`polish` False), where a region often is not in the frame at all.
+    if polish and best is not None and -math.inf < float(best.quality) < accept:
+      again = align(picture, patch, best.homography, config=config, key=key)
+      if float(again.quality) > float(best.quality):
+        best = again
+  if best is None:
+    return None
+  return best._replace(num_iterations=jnp.asarray(spent.iterations, jnp.int32),
+                       num_evaluations=jnp.asarray(spent.evaluations, jnp.int32))
+
+
+def _best_of(picture, patch, starts, quick: TrackConfig, key, blurred_from, accept: float,
+             either_sign: bool) -> AlignResult | None:
+  """The highest-quality `search` candidate: each of `starts` aligned with `quick`, a smeared
+  alignment of it counting from the quality `blurred_from` (None: none tried), up to the
+  first that reaches `accept`; None where `starts` is empty."""
+  best = None
   for start in starts:
     found = align(picture, patch, start, config=quick, key=key)
-    ran.append(found)
     if blurred_from is not None and float(found.quality) < accept:
       smeared = blur.register_fitted(picture, patch, np.asarray(found.homography), quick, key,
                                      either_sign)
-      if smeared is not None:
-        ran.append(smeared)
       if (smeared is not None and float(smeared.quality) > float(found.quality)
           and float(smeared.quality) >= blurred_from):
         found = smeared
@@ -432,18 +452,4 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
       best = found
     if float(found.quality) >= accept:
       break
-  # The second alignment: detection.py, 2026-11-29 (--trials 100, seed 0), NCC's trial 81
-  # went from 5.8 px off at NCC 0.28 to 0.11 px at 0.88; trial 42 from 1.7 to 2.9 px, to
-  # NCC's own optimum (`align` from the truth ends 3.0 px off); success 99 % (MI) and 98 %
-  # (NCC) as before, medians within the host's noise.  Not in `track`'s re-detection
-  # (`polish` False), where a region often is not in the frame at all.
-  if polish and best is not None and -math.inf < float(best.quality) < accept:
-    again = align(picture, patch, best.homography, config=config, key=key)
-    ran.append(again)
-    if float(again.quality) > float(best.quality):
-      best = again
-  if best is None:
-    return None
-  return best._replace(
-      num_iterations=jnp.asarray(sum(int(f.num_iterations) for f in ran), jnp.int32),
-      num_evaluations=jnp.asarray(sum(int(f.num_evaluations) for f in ran), jnp.int32))
+  return best

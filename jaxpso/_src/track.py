@@ -85,9 +85,11 @@ class TrackResult(NamedTuple):
       impossible or jumped (`_plausible`) (never NaN).
     status: (T,) int32 `TrackStatus`.
     poses: (T, 4, 4) frame-0 → frame camera poses for motion "plane", else None.
-    num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0).
-    num_evaluations: (T,) similarity evaluations of the frame step and of a registration on
-      the host that replaced its match (a re-detection: every alignment `detect` ran).
+    num_iterations: (T,) swarm iterations plus refinement steps (0 at frame 0), as
+      `num_evaluations` counts them.
+    num_evaluations: (T,) similarity evaluations of the frame step and of every `align` run
+      for the frame on the host, adopted or not (the visible part, smeared templates,
+      `detect`'s candidates, a periodic template's shifts).
     visible: (T,) the share of the region judged visible: where the whole
       template matched, the share of the estimate inside the frame
       (`homography.inside_share`); on a
@@ -467,74 +469,76 @@ def _reacquired(carry: _Carry, before: _Carry, out: dict, check, recent: _Recent
   either_sign = config.similarity == "mi"
   bounded = detection.bounded(config)
   carry, before, out = _host_copies(carry, before, out)
-  found, shares = {}, {}
+  found, shares, spent = {}, {}, {}  # spent: {region: its `aligning.Spent`}
   for r in (int(r) for r in check):
-    shape = templates_[r].shape
-    if not config.redetect:
-      _keep_lost(carry, before, out, recent, geometry, config, r, shape, images[r].shape)
-      continue
-    smeared_from = float(before.reference[r]) - _margin(config)
-    left = _reentry_ranges(recent.tracked[r], shape, images[r].shape)
-    detected = False  # `detect` run on this frame: `whole` its result (None: no place), `share`
-    if r in doubt and out["status"][r] != TrackStatus.LOST:
-      whole, share = _detected(images[r], templates_[r], config, index, smeared_from, left,
-                               peak[r] - _margin(config))
-      detected = True
-      if (whole is not None and float(whole.quality) >= out["quality"][r] + _margin(config)
-          and _corner_distance(whole.homography, out["homography"][r], shape) > _PART_REACH_PX):
-        found[r], shares[r] = (whole, TrackStatus.RECOVERED), share
-        if float(whole.quality) >= peak[r] - _margin(config):
-          del doubt[r]
+    with aligning.counted() as spent[r]:
+      shape = templates_[r].shape
+      if not config.redetect:
+        _keep_lost(carry, before, out, recent, geometry, config, r, shape, images[r].shape)
         continue
-      if out["inside"][r] >= _MIN_IN_FRAME:
-        continue
-    predicted = _coasted(recent, r, shape, images[r].shape)  # the last estimate moved on
-    start = predicted if out["status"][r] == TrackStatus.LOST else out["homography"][r]
-    reach = _PART_REACH_PX + 2.0 * recent.speed(r, shape) * (recent.gap[r] + 1)
-    part = None
-    for origin in ([start] if _corner_distance(start, predicted, shape) <= _PART_REACH_PX
-                   else [start, predicted]):
-      part, shares[r] = visibility.register_part(images[r], templates_[r], origin, bounded, index,
-                                                 either_sign)
-      if part is not None and (
-          _corner_distance(part.homography, recent.homography[r], shape) <= reach
-          or _corner_distance(part.homography, out["homography"][r], shape) <= _PART_REACH_PX):
-        if float(part.quality) < config.lost_threshold:
-          part = _smeared_part(images[r], templates_[r], part, bounded, index, either_sign)
-        if part is not None and float(part.quality) >= config.lost_threshold:
-          break
+      smeared_from = float(before.reference[r]) - _margin(config)
+      left = _reentry_ranges(recent.tracked[r], shape, images[r].shape)
+      detected = False  # `detect` run on this frame: `whole` its result (None: no place), `share`
+      if r in doubt and out["status"][r] != TrackStatus.LOST:
+        whole, share = _detected(images[r], templates_[r], config, index, smeared_from, left,
+                                 peak[r] - _margin(config))
+        detected = True
+        if (whole is not None and float(whole.quality) >= out["quality"][r] + _margin(config)
+            and _corner_distance(whole.homography, out["homography"][r], shape) > _PART_REACH_PX):
+          found[r], shares[r] = (whole, TrackStatus.RECOVERED), share
+          if float(whole.quality) >= peak[r] - _margin(config):
+            del doubt[r]
+          continue
+        if out["inside"][r] >= _MIN_IN_FRAME:
+          continue
+      predicted = _coasted(recent, r, shape, images[r].shape)  # the last estimate moved on
+      start = predicted if out["status"][r] == TrackStatus.LOST else out["homography"][r]
+      reach = _PART_REACH_PX + 2.0 * recent.speed(r, shape) * (recent.gap[r] + 1)
       part = None
-    if part is not None:
-      found[r] = part, TrackStatus.TRACKED
-      continue
-    if (recent.speed(r, shape) >= blur.MIN_MOTION_PX and recent.gap[r] <= blur.MAX_GAP
-        and _inside_share(start, shape, images[r].shape) >= blur.MIN_INSIDE):
-      smeared = blur.register_blurred(images[r], templates_[r], start, recent.motion(r), bounded,
-                                      index)
-      share = 0.0 if smeared is None else _inside_share(smeared.homography, shape,
-                                                        images[r].shape)
-      if (smeared is not None and float(smeared.quality) >= config.lost_threshold
-          and share >= blur.MIN_INSIDE
-          and _corner_distance(smeared.homography, recent.homography[r], shape) <= reach):
-        found[r], shares[r] = (smeared, TrackStatus.TRACKED), share
+      for origin in ([start] if _corner_distance(start, predicted, shape) <= _PART_REACH_PX
+                     else [start, predicted]):
+        part, shares[r] = visibility.register_part(images[r], templates_[r], origin, bounded, index,
+                                                   either_sign)
+        if part is not None and (
+            _corner_distance(part.homography, recent.homography[r], shape) <= reach
+            or _corner_distance(part.homography, out["homography"][r], shape) <= _PART_REACH_PX):
+          if float(part.quality) < config.lost_threshold:
+            part = _smeared_part(images[r], templates_[r], part, bounded, index, either_sign)
+          if part is not None and float(part.quality) >= config.lost_threshold:
+            break
+        part = None
+      if part is not None:
+        found[r] = part, TrackStatus.TRACKED
         continue
-    if not detected:
-      whole, share = _detected(images[r], templates_[r], config, index, smeared_from, left,
-                               peak[r] - _margin(config))
-    if whole is not None and float(whole.quality) >= config.lost_threshold:
-      found[r], shares[r] = (whole, TrackStatus.RECOVERED), share
-      if float(whole.quality) < peak[r] - _margin(config):
-        doubt[r] = index + _DOUBT_FRAMES, float(peak[r])
-    else:
-      _keep_lost(carry, before, out, recent, geometry, config, r, shape, images[r].shape)
-      if config.coast and _leaving(recent, r, shape, images[r].shape):
-        _follow_part(carry, out, geometry, images[r], templates_[r], r, either_sign)
+      if (recent.speed(r, shape) >= blur.MIN_MOTION_PX and recent.gap[r] <= blur.MAX_GAP
+          and _inside_share(start, shape, images[r].shape) >= blur.MIN_INSIDE):
+        smeared = blur.register_blurred(images[r], templates_[r], start, recent.motion(r), bounded,
+                                        index)
+        share = 0.0 if smeared is None else _inside_share(smeared.homography, shape,
+                                                          images[r].shape)
+        if (smeared is not None and float(smeared.quality) >= config.lost_threshold
+            and share >= blur.MIN_INSIDE
+            and _corner_distance(smeared.homography, recent.homography[r], shape) <= reach):
+          found[r], shares[r] = (smeared, TrackStatus.TRACKED), share
+          continue
+      if not detected:
+        whole, share = _detected(images[r], templates_[r], config, index, smeared_from, left,
+                                 peak[r] - _margin(config))
+      if whole is not None and float(whole.quality) >= config.lost_threshold:
+        found[r], shares[r] = (whole, TrackStatus.RECOVERED), share
+        if float(whole.quality) < peak[r] - _margin(config):
+          doubt[r] = index + _DOUBT_FRAMES, float(peak[r])
+      else:
+        _keep_lost(carry, before, out, recent, geometry, config, r, shape, images[r].shape)
+        if config.coast and _leaving(recent, r, shape, images[r].shape):
+          _follow_part(carry, out, geometry, images[r], templates_[r], r, either_sign)
   for r, (f, status) in found.items():
     if _kept_shape(recent, r, f.homography, status):
       _adopt(carry, before, out, recent, geometry, r, f, status)
     else:
       _keep_lost(carry, before, out, recent, geometry, config, r, templates_[r].shape,
                  images[r].shape)
+  _add_spent(out, spent)
   return sharding.split(carry, mesh), out, shares
 
 
@@ -581,8 +585,14 @@ def _adopt(carry: _Carry, before: _Carry, out: dict, recent: _Recent, geometry, 
   out["homography"][r], out["estimate"][r] = h, estimate
   out["score"][r], out["quality"][r] = float(found.score), float(found.quality)
   out["status"][r] = status
-  out["num_iterations"][r] += int(found.num_iterations)
-  out["num_evaluations"][r] += int(found.num_evaluations)
+
+
+def _add_spent(out: dict, spent: dict) -> None:
+  """`out`'s (a frame step's host copy, changed in place) counts with the host's alignments
+  added: `spent` {region: its `aligning.Spent`}, adopted or not."""
+  for r, used in spent.items():
+    out["num_iterations"][r] += used.iterations
+    out["num_evaluations"][r] += used.evaluations
 
 
 def _smeared_part(image: np.ndarray, template: np.ndarray, part, config: TrackConfig, index: int,
@@ -681,30 +691,33 @@ def _dealiased(carry: _Carry, before: _Carry, out: dict, regions, recent: _Recen
   `_margin` short of `best` (R,); frame `index` seeds `align`."""
   either_sign = config.similarity == "mi"
   carry, before, out = _host_copies(carry, before, out)
+  spent = {}  # {region: its `aligning.Spent`}
   for r in regions:
-    template = templates_[r]
-    d = periodic.reach(template.shape)
-    at = np.zeros(2, int)  # the match's shift in `scores`
-    for _ in range(_ALIAS_MOVES):
-      h = out["homography"][r].astype(np.float64)
-      shift, scores = periodic.best_shift(images[r], template, h, either_sign)
-      if not np.any(shift):
-        break
-      moved = h @ np.array([[1.0, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1]])
-      found = aligning.align(images[r], template, moved, config=detection.bounded(config),
-                             key=index)
-      if (not float(found.quality) > out["quality"][r]
-          or not _kept_shape(recent, r, found.homography, TrackStatus.TRACKED)):
-        break
-      _adopt(carry, before, out, recent, geometry, r, found, out["status"][r])
-    else:
-      at = shift
-    rows, cols = np.mgrid[-d:d + 1, -d:d + 1]
-    apart = np.maximum(np.abs(cols - at[0]), np.abs(rows - at[1])) >= _ALIAS_APART_PX
-    here = scores[d + at[1], d + at[0]]  # -1: too little inside the frame to compare
-    if ((here > -1.0 and np.any(scores[apart] >= here - _ALIAS_TIE))
-        or out["quality"][r] < best[r] - _margin(config)):
-      out["status"][r] = TrackStatus.DOUBTFUL
+    with aligning.counted() as spent[r]:
+      template = templates_[r]
+      d = periodic.reach(template.shape)
+      at = np.zeros(2, int)  # the match's shift in `scores`
+      for _ in range(_ALIAS_MOVES):
+        h = out["homography"][r].astype(np.float64)
+        shift, scores = periodic.best_shift(images[r], template, h, either_sign)
+        if not np.any(shift):
+          break
+        moved = h @ np.array([[1.0, 0, shift[0]], [0, 1, shift[1]], [0, 0, 1]])
+        found = aligning.align(images[r], template, moved, config=detection.bounded(config),
+                               key=index)
+        if (not float(found.quality) > out["quality"][r]
+            or not _kept_shape(recent, r, found.homography, TrackStatus.TRACKED)):
+          break
+        _adopt(carry, before, out, recent, geometry, r, found, out["status"][r])
+      else:
+        at = shift
+      rows, cols = np.mgrid[-d:d + 1, -d:d + 1]
+      apart = np.maximum(np.abs(cols - at[0]), np.abs(rows - at[1])) >= _ALIAS_APART_PX
+      here = scores[d + at[1], d + at[0]]  # -1: too little inside the frame to compare
+      if ((here > -1.0 and np.any(scores[apart] >= here - _ALIAS_TIE))
+          or out["quality"][r] < best[r] - _margin(config)):
+        out["status"][r] = TrackStatus.DOUBTFUL
+  _add_spent(out, spent)
   return sharding.split(carry, mesh), out
 
 
