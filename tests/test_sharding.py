@@ -57,36 +57,32 @@ def _checks():
   print("pso", flush=True)
 
   # Three regions tracked on one device and on several: on the four (3 used)
-  # for NCC, on two (padded to 4) for MI with prediction; the MI batch also
-  # equals its last region tracked alone.  Each device runs the one-device
-  # program on its regions (`sharding.per_device`): bit-identical (NCC 4.8e-3
-  # px apart under XLA's SPMD partitioner, 1e-4 to 1.7e-3 px with divisions
-  # XLA turned into multiplications in some programs only;
-  # benchmarks/results/invariance.md).  One setting per similarity: each
-  # distinct program is a compilation of 10-30 s.
+  # and on two (padded to 4), MI with prediction (the richest carry).  Each
+  # device runs the one-device program on its regions
+  # (`sharding.per_device`): bit-identical (NCC 4.8e-3 px apart under XLA's
+  # SPMD partitioner, 1e-4 to 1.7e-3 px with divisions XLA turned into
+  # multiplications in some programs only; benchmarks/results/invariance.md).
+  # One similarity: the split is the same for each, and each sharded program
+  # is a compilation of 10-30 s that the disk cache does not keep; a region
+  # of a batch tracks as alone for each similarity in tests/test_batch.py.
   sequence = jaxpso.synthetic.make_sequence(0, num_frames=4, frame_shape=(96, 128),
                                             roi_size=(32, 32))
   x, y, w, h = sequence.roi
   rois = np.array([sequence.roi, (x + 5, y - 3, w, h), (x - 4, y + 4, w, h)])
-  configs = {similarity: jaxpso.TrackConfig(similarity=similarity, levels=2, swarm_size=8,
-                                            max_iterations=5, search_radius=6.0, predict=predict)
-             for similarity, predict in (("ncc", False), ("mi", True))}
-  for similarity, chosen in (("ncc", None), ("mi", devices[:2])):
-    config = configs[similarity]
-    one = jaxpso.track(sequence.frames, rois, config=config, devices=devices[:1], key=keys)
+  config = jaxpso.TrackConfig(similarity="mi", levels=2, swarm_size=8, max_iterations=5,
+                              search_radius=6.0, predict=True)
+  one = jaxpso.track(sequence.frames, rois, config=config, devices=devices[:1], key=keys)
+  for chosen in (None, devices[:2]):
     many = jaxpso.track(sequence.frames, rois, config=config, devices=chosen, key=keys)
     np.testing.assert_array_equal(many.homographies, one.homographies)
     np.testing.assert_array_equal(many.status, one.status)
-  alone = jaxpso.track(sequence.frames, rois[2], config=configs["mi"], key=keys[2])
-  np.testing.assert_array_equal(alone.homographies, one.homographies[2])
   # A lone region stays where JAX puts it (a one-device mesh among several cost
   # it 1.3–1.4× its time per frame); named devices are honoured.
   assert sharding.batch_mesh(None, 1) is None
   assert list(sharding.batch_mesh(devices[1:2], 1).devices) == [devices[1]]
   # The frame step keeps the regions split: each device's carry holds its
-  # region.  The step is the NCC track's above (its mesh, statics and
+  # region.  The step is the four devices' track above (its mesh, statics and
   # shapes), so no program is compiled for it.
-  config = configs["ncc"]
   mesh = sharding.batch_mesh(None, 3)
   template = np.ascontiguousarray(sequence.frames[0, :32, :32])
   statics = config.statics()
