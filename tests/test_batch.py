@@ -190,30 +190,35 @@ def test_every_region_of_a_wide_batch_tracks_bit_identically_as_alone():
 
 @pytest.fixture
 def accelerator_path(monkeypatch):
-  """The batch as on an accelerator (`vmap`, `where_needed`), run on the CPU, in programs of its own."""
-  for name in ("_dir_setting", "_dir", "_dir_checked"):
-    monkeypatch.setattr(programs, name, getattr(programs, name))
-  programs.set_cache_dir(None)
-  programs.clear()
-  monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
-  yield
+  """A call that switches to the batch as on an accelerator (`vmap`, `where_needed`), run on
+  the CPU, in programs of its own."""
+  def switch():
+    for name in ("_dir_setting", "_dir", "_dir_checked"):
+      monkeypatch.setattr(programs, name, getattr(programs, name))
+    programs.set_cache_dir(None)
+    programs.clear()
+    monkeypatch.setattr(jax, "default_backend", lambda: "gpu")
+
+  yield switch
   programs.clear()
 
 
 def test_the_accelerator_path_tracks_and_aligns_each_element_as_alone(accelerator_path):
-  # Vectorised, a batch rounds otherwise than one element alone: equal
-  # within 1e-3 px, not bit for bit.  A region over a frame of noise runs
-  # the recovery, gathered by `where_needed`; the others keep their results.
+  # Vectorised, a batch rounds otherwise than one element alone on the CPU's
+  # path: equal within 1e-3 px, not bit for bit.  A region over a frame of
+  # noise runs the recovery, gathered by `where_needed`; the others keep
+  # their results.
   sequence = _sequence(0)
   noisy = sequence.frames.copy()
   noisy[3, :, 80:] = np.random.default_rng(0).uniform(size=noisy[3, :, 80:].shape)
   rois = np.array([(4, 30, 40, 40), (110, 30, 40, 40), (20, 40, 40, 40)])
+  alone = {r: jaxpso.track(noisy, rois[r], config=CONFIG, key=r + 1) for r in (0, 2)}
+  accelerator_path()
   batch = jaxpso.track(noisy, rois, config=CONFIG, key=[1, 2, 3])
   assert batch.status[1, 3] == jaxpso.TrackStatus.LOST
   for r in (0, 2):
-    alone = jaxpso.track(noisy, rois[r], config=CONFIG, key=r + 1)
-    np.testing.assert_allclose(batch.corners[r], alone.corners, atol=1e-3)
-    np.testing.assert_array_equal(batch.status[r], alone.status)
+    np.testing.assert_allclose(batch.corners[r], alone[r].corners, atol=1e-3)
+    np.testing.assert_array_equal(batch.status[r], alone[r].status)
   triples = [_triple(seed) for seed in range(3)]
   templates, starts, truths = (np.stack(a) for a in zip(*triples))
   aligned = jaxpso.align(np.stack([IMAGE] * 3), templates, starts, config=ALIGN, key=[4, 5, 6])
