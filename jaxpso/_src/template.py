@@ -214,34 +214,38 @@ def value_range(values: np.ndarray) -> np.ndarray:
   return np.array([(lo + hi) / 2 - half, (lo + hi) / 2 + half], np.float32)
 
 
-# The cubic B-spline's four pieces at t in [0, 1) as (1, t, t², t³) @ this.
+# The cubic B-spline's four pieces at t in [0, 1): piece i is Σ_k t^k · _CUBIC_PIECES[k, i].
 _CUBIC_PIECES = np.array([[1, 4, 1, 0], [-3, 0, 3, 0], [3, -6, 3, 0], [-1, 3, -3, 1]]) / 6.0
 
 
-def _bin_dense(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
-  """(n, bins + 3) float64 cubic B-spline bin weights of intensities (n,) (`measures.bin_weights` on the host).
+def _gram(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
+  """(bins + 3, bins + 3) float64 XᵀX of the cubic B-spline bin weights X (n, bins + 3) of
+  intensities (n,) (`measures.bin_weights` on the host).
 
-  Each intensity weighs bins ⌊s⌋ − 1 … ⌊s⌋ + 2 (the cubic B-spline's four
-  pieces at t = s − ⌊s⌋), scattered into a dense matrix; the columns past
-  `bins` only ever get weight 0 (at s = bins − 2).  Its XᵀX was faster
-  than a sum of 4 × 4 blocks (0.21 vs 0.28–0.30 ms for 2 500 intensities)
-  and than a `bincount` of the 16 products per intensity.
+  Each intensity weighs bins ⌊s⌋ − 1 … ⌊s⌋ + 2 (the pieces at t = s − ⌊s⌋);
+  the columns past `bins` only ever get weight 0 (at s = bins − 2).  The 16
+  products per intensity are summed by `np.bincount`, with no BLAS call: a
+  dense n × 19 X and XᵀX by BLAS (0.05 ms alone) woke OpenBLAS's threads
+  beside the compiled call's, and `align` (MI, 100×100 templates) took 10.6
+  ms a call against 7.1–8.3 with OPENBLAS_NUM_THREADS=1; runtime.py's cases:
+  align's medians 7–36 % lower in one run (benchmarks/results/runtime_cases_gram.md).
   """
   lo, hi = (float(v) for v in value_range_)
   s = 1.0 + (np.clip(values, lo, hi) - lo) * ((bins - 3) / (hi - lo))
   whole = np.floor(s)
   t = s - whole
-  pieces = np.stack([np.ones_like(t), t, t * t, t * t * t], axis=1) @ _CUBIC_PIECES
-  rows = np.arange(s.size) * (bins + 3) + whole.astype(np.int64) - 1
-  dense = np.zeros((s.size, bins + 3))
-  dense.reshape(-1)[(rows[:, None] + np.arange(4)).reshape(-1)] = pieces.reshape(-1)
-  return dense
+  powers = (np.ones_like(t), t, t * t, t * t * t)
+  pieces = [sum(p * c for p, c in zip(powers, column)) for column in _CUBIC_PIECES.T]
+  first = whole.astype(np.int64) - 1  # the first bin each intensity weighs
+  width = bins + 3
+  index = np.concatenate([(first + i) * width + first + j for i in range(4) for j in range(4)])
+  weight = np.concatenate([pieces[i] * pieces[j] for i in range(4) for j in range(4)])
+  return np.bincount(index, weight, minlength=width * width).reshape(width, width)
 
 
 def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
   """(3,) float32 the loss of intensities (n,) against themselves: −MI, −NCC, SSD's scale (variance)."""
-  dense = _bin_dense(values, bins, value_range_)
-  joint = (dense.T @ dense)[:bins, :bins]
+  joint = _gram(values, bins, value_range_)[:bins, :bins]
   p = joint / joint.sum()
 
   def entropy(q):
@@ -256,8 +260,8 @@ def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.n
 
 def remap(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
   """(bins, bins) float32 `Template.remap` of a set's intensities (n,)."""
-  dense = _bin_dense(values, bins, value_range_)
-  return np.linalg.inv((dense.T @ dense)[:bins, :bins] + REMAP_RIDGE * np.eye(bins)).astype(np.float32)
+  gram = _gram(values, bins, value_range_)[:bins, :bins]
+  return np.linalg.inv(gram + REMAP_RIDGE * np.eye(bins)).astype(np.float32)
 
 
 def prepare(template: np.ndarray, levels: int, pixels: float, bins: int,
