@@ -26,7 +26,7 @@ whose loss is the user's function) stays in memory only.
 
 Matrix products are traced in float32 (`MATMUL_PRECISION`), never in an
 accelerator's faster TensorFloat-32 or bfloat16 passes.  Compiler options:
-XLA's defaults.  An earlier tracker turned XLA:CPU's
+`CPU_COMPILER_OPTIONS` on a CPU, XLA's defaults elsewhere.  An earlier tracker turned XLA:CPU's
 YNNPACK dot fusions off (batched MI histograms ran slower in them); the
 point-set registration's products are faster with them (benchmarks/README.md,
 implementation choices).
@@ -60,6 +60,13 @@ MATMUL_PRECISION = "float32"
 An accelerator's default may round a float32 product's operands to
 TensorFloat-32 (10 mantissa bits): a homography then maps 500 px
 coordinates 0.5 px off, and a Gauss–Newton system loses its last digits.
+"""
+
+CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1}
+"""XLA options of jaxpso's programs on a CPU: LLVM's level 1 (XLA's default is 2).
+
+Their code ran 8–11 % faster at it, and compiled no slower (benchmarks/README.md,
+implementation choices).
 """
 
 MAX_PROGRAMS = 16
@@ -197,7 +204,8 @@ class Program:
         return compiled
     _warn_if_evicted(key)
     program = _in_float32(self._fun)  # new per compilation: JAX's caches keyed weakly on it let go with it
-    compiled = jax.jit(program, static_argnames=self._static).lower(*args, **static).compile()
+    compiled = jax.jit(program, static_argnames=self._static).lower(*args, **static).compile(
+        compiler_options=_compiler_options(key[3], default))
     _count("compiled")
     if path is not None:
       _store(path, compiled)
@@ -467,6 +475,13 @@ def _trim(directory: pathlib.Path):
 
 
 @functools.cache
+def _compiler_options(types, default) -> dict:
+  """`CPU_COMPILER_OPTIONS` for a program whose arguments all live on CPU devices, else none."""
+  shardings = [default] + [placement for *_, placement in types if placement is not None]
+  platforms = {device.platform for sharding in shardings for device in sharding.device_set}
+  return dict(CPU_COMPILER_OPTIONS) if platforms == {"cpu"} else {}
+
+
 def _default_sharding(default_device) -> jax.sharding.SingleDeviceSharding:
   """Where JAX puts a NumPy argument, given `jax_default_device`."""
   if isinstance(default_device, str):
