@@ -235,12 +235,13 @@ def _gram(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray
   whole = np.floor(s)
   t = s - whole
   powers = (np.ones_like(t), t, t * t, t * t * t)
-  pieces = [sum(p * c for p, c in zip(powers, column)) for column in _CUBIC_PIECES.T]
-  first = whole.astype(np.int64) - 1  # the first bin each intensity weighs
+  pieces = np.stack([sum(p * c for p, c in zip(powers, column)) for column in _CUBIC_PIECES.T])
+  weighed = whole.astype(np.int64) - 1 + np.arange(4)[:, None]  # (4, n) the bins each weighs
   width = bins + 3
-  index = np.concatenate([(first + i) * width + first + j for i in range(4) for j in range(4)])
-  weight = np.concatenate([pieces[i] * pieces[j] for i in range(4) for j in range(4)])
-  return np.bincount(index, weight, minlength=width * width).reshape(width, width)
+  index = weighed[:, None] * width + weighed[None]  # (4, 4, n)
+  weight = pieces[:, None] * pieces[None]
+  return np.bincount(index.reshape(-1), weight.reshape(-1),
+                     minlength=width * width).reshape(width, width)
 
 
 def self_losses(values: np.ndarray, bins: int, value_range_: np.ndarray) -> np.ndarray:
