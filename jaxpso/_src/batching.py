@@ -44,11 +44,18 @@ def elements(value, batched: bool, name: str) -> list:
 def stack(trees: list):
   """A list of equally structured NumPy pytrees → one with a leading axis (a view for one tree).
 
-  The leaves are read-only (`atlas`: the program then reads them without a copy).
+  The leaves are read-only and stacked into aligned arrays (`atlas.empty`): the
+  program then reads them without a copy.
   """
   if len(trees) == 1:
     return jax.tree.map(lambda leaf: _read_only(np.asarray(leaf)[None]), trees[0])
-  return jax.tree.map(lambda *leaves: _read_only(np.stack(leaves)), *trees)
+
+  def stacked(*leaves):
+    first = np.asarray(leaves[0])
+    return _read_only(np.stack(leaves, out=atlas.empty((len(leaves),) + first.shape,
+                                                       first.dtype)))
+
+  return jax.tree.map(stacked, *trees)
 
 
 def _read_only(array: np.ndarray) -> np.ndarray:

@@ -287,8 +287,9 @@ def prepare(template: np.ndarray, levels: int, pixels: float, bins: int,
     chosen.append((level, _largest_gradient(level, min(wanted, resolution))))
   chosen += [None] * (atlas.MAX_LEVELS - levels)
   chosen.append((pyramid[0], _subsample(pyramid[0], resolution)))
-  points = np.zeros((capacity(resolution), 2), np.float32)
-  values = np.zeros(capacity(resolution), np.float32)
+  points = atlas.empty((capacity(resolution), 2))  # aligned: the program reads them uncopied
+  values = atlas.empty(capacity(resolution))
+  points[:], values[:] = 0.0, 0.0
   sets = np.zeros((atlas.MAX_LEVELS + 1, 2), np.int32)
   for index, entry in enumerate(chosen):
     if entry is None:
