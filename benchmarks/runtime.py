@@ -17,8 +17,9 @@ range over the rounds.  Every process compiles first and times afterwards.
   the cost has two modes (accepted start or coarser start), and on 40
   trials the median fell on one or the other (benchmarks/README.md).
 * track, one region: the default `TrackConfig` with MI and NCC on an
-  80-frame synthetic sequence (100×100 region, a jump at frame 40), best of
-  3 calls, ms per frame, median corner error.
+  80-frame synthetic sequence of 240×320 and of 480×640 frames (100×100
+  region, a jump at frame 40), best of 3 calls, ms per frame, median corner
+  error.
 * track, a batch: 64 regions of 48×48 (`batch.regions`) over 20 frames of
   a 240×320 sequence, best of 3; the default and `accept_quality=0` (no
   swarm: Gauss–Newton and the check alone), ms per region-frame.
@@ -135,16 +136,19 @@ def _best_seconds(fn, repeats: int = 3) -> float:
 def _track_rows():
   import jaxpso
 
-  sequence = jaxpso.synthetic.make_sequence(0, num_frames=80, jumps=(40,), noise=0.01)
   rows = []
-  for similarity in ("mi", "ncc"):
-    config = jaxpso.TrackConfig(similarity=similarity)
-    result = []
-    seconds = _best_seconds(
-        lambda: result.append(jaxpso.track(sequence.frames, sequence.roi, config=config)))
-    error = np.sqrt(np.mean(np.sum((result[-1].corners - sequence.corners) ** 2, -1), -1))
-    rows.append({"call": f"track {similarity.upper()}, one 100×100 region, ms/frame",
-                 "value": seconds / 79 * 1e3, "detail": f"median error {np.median(error):.3f} px"})
+  for shape, label in (((240, 320), ""), ((480, 640), ", 480×640 frames")):
+    sequence = jaxpso.synthetic.make_sequence(0, num_frames=80, jumps=(40,), noise=0.01,
+                                              frame_shape=shape)
+    for similarity in ("mi", "ncc"):
+      config = jaxpso.TrackConfig(similarity=similarity)
+      result = []
+      seconds = _best_seconds(
+          lambda: result.append(jaxpso.track(sequence.frames, sequence.roi, config=config)))
+      error = np.sqrt(np.mean(np.sum((result[-1].corners - sequence.corners) ** 2, -1), -1))
+      rows.append({"call": f"track {similarity.upper()}, one 100×100 region{label}, ms/frame",
+                   "value": seconds / 79 * 1e3,
+                   "detail": f"median error {np.median(error):.3f} px"})
   return rows
 
 
