@@ -26,10 +26,10 @@ whose loss is the user's function) stays in memory only.
 
 Matrix products are traced in float32 (`MATMUL_PRECISION`), never in an
 accelerator's faster TensorFloat-32 or bfloat16 passes.  Compiler options:
-`CPU_COMPILER_OPTIONS` on a CPU, XLA's defaults elsewhere.  An earlier tracker turned XLA:CPU's
-YNNPACK dot fusions off (batched MI histograms ran slower in them); the
-point-set registration's products are faster with them (benchmarks/README.md,
-implementation choices).
+`CPU_COMPILER_OPTIONS` on a CPU, XLA's defaults elsewhere.  An earlier
+tracker turned XLA:CPU's YNNPACK dot fusions off (batched MI histograms ran
+slower in them); the point-set registration's products are faster with them
+(benchmarks/README.md, implementation choices).
 """
 
 from __future__ import annotations
@@ -474,7 +474,6 @@ def _trim(directory: pathlib.Path):
     total -= size
 
 
-@functools.cache
 def _compiler_options(types, default) -> dict:
   """`CPU_COMPILER_OPTIONS` for a program whose arguments all live on CPU devices, else none."""
   shardings = [default] + [placement for *_, placement in types if placement is not None]
@@ -482,6 +481,7 @@ def _compiler_options(types, default) -> dict:
   return dict(CPU_COMPILER_OPTIONS) if platforms == {"cpu"} else {}
 
 
+@functools.cache
 def _default_sharding(default_device) -> jax.sharding.SingleDeviceSharding:
   """Where JAX puts a NumPy argument, given `jax_default_device`."""
   if isinstance(default_device, str):
