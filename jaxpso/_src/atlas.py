@@ -56,7 +56,7 @@ _ALIGNMENT = 64
 
 def empty(shape, dtype=np.float32) -> np.ndarray:
   """An uninitialised NumPy array whose data starts on a 64-byte boundary (`_ALIGNMENT`)."""
-  dtype, shape = np.dtype(dtype), (shape,) if isinstance(shape, int) else tuple(shape)
+  dtype, shape = np.dtype(dtype), (int(shape),) if np.ndim(shape) == 0 else tuple(shape)
   count = math.prod(shape)
   spare = np.empty(count * dtype.itemsize + _ALIGNMENT, np.uint8)
   start = -spare.ctypes.data % _ALIGNMENT
