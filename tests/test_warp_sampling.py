@@ -322,7 +322,7 @@ def test_atlas_holds_the_pyramid_read_only():
   assert all(uncopied(leaf) for leaf in batching.stack([built, built]))  # stacked aligned
   for shape in ((240, 320), (480, 640)):
     assert uncopied(atlas.build(np.ascontiguousarray(_CAMERA[:shape[0], :shape[1]]), 3).pixels)
-  prepared = batching.stack([templates.prepare(image[:48, :48], 2, 0.25, 16)] * 2)
+  prepared = batching.stack([templates.prepare(image[:48, :48], 2, 0.25, 16)])  # one: a view
   assert uncopied(prepared.points) and uncopied(prepared.values)
 
 
