@@ -525,9 +525,10 @@ def test_a_budget_ends_a_hopeless_search_with_its_best_and_says_so():
 
 
 def test_a_hopeless_search_runs_no_retry_and_says_so():
-  """NCC on an inverted image: the best of the starts and searches stays under NCC's
-  `HOPELESS_QUALITY` (0.3), so no retry runs and the status is NO_MATCH; with the floor off
-  every retry runs.  A clean image is untouched."""
+  """NCC on an inverted image: the best of the starts and quick searches stays under NCC's
+  `HOPELESS_QUALITY` (0.3), so neither the full search nor a retry runs (610 evaluations,
+  1 460 when the full search ran) and the status is NO_MATCH; with the floor off every retry
+  runs.  A clean image is untouched."""
   inverted = 1.0 - IMAGE
   config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "similarity": "ncc",
                                  "max_evaluations": None})
@@ -537,6 +538,7 @@ def test_a_hopeless_search_runs_no_retry_and_says_so():
   assert int(stopped.status) == jaxpso.AlignStatus.NO_MATCH, stopped
   assert float(stopped.quality) < 0.3 and int(free.status) == jaxpso.AlignStatus.SUCCESS
   assert 4 * int(stopped.num_evaluations) < int(free.num_evaluations), (stopped, free)
+  assert int(stopped.num_evaluations) < CONFIG.swarm_size * CONFIG.max_iterations  # the search's
   batch = jaxpso.align(np.stack([inverted] * 3), np.stack([TEMPLATE] * 3),
                        np.stack([_perturbed(s, 3.0) for s in (7, 8, 9)]), key=1, config=config)
   np.testing.assert_array_equal(batch.status, jaxpso.AlignStatus.NO_MATCH)

@@ -50,7 +50,7 @@ class AlignStatus(enum.IntEnum):
   SUCCESS = 0
   NO_VALID_WARP = 1
   BUDGET = 2  # `TrackConfig.max_evaluations` spent before the search settled: its best so far
-  NO_MATCH = 3  # the best found stays under `TrackConfig.hopeless_quality`: no retry ran
+  NO_MATCH = 3  # the best stays under `TrackConfig.hopeless_quality`: the later searches skipped
 
 
 class AlignResult(NamedTuple):

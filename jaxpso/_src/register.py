@@ -353,9 +353,10 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
   # 0.70); _VOTES agreeing estimates confirm it at any quality.
   settled = ((searched.quality >= knobs.retry_quality)
              | (agree & (searched.quality >= _MIN_REFERENCE)) | (votes >= _VOTES))
-  # A full search whose best stays under hopeless_quality runs no retry:
-  # the image holds no match for the similarity (NCC on an inverted image,
-  # where the retries spent 90 % of a 157 ms call; `config.HOPELESS_QUALITY`).
+  # Where the best after the quick searches (and after the full search)
+  # stays under hopeless_quality, the image holds no match for the
+  # similarity (NCC on an inverted image): no full search and no retry
+  # (`config.HOPELESS_QUALITY`).
   hopeless = searched.quality < knobs.hopeless_quality
   again = ((stage == _RETRY) & (merged.quality < knobs.retry_quality) & ~agree
            & (votes < _VOTES) & (state.retries < knobs.retries))
@@ -367,7 +368,7 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
        stage == _SEARCH],
       [jnp.where(accepted, done, jnp.where(second_start, _FINE_START, search)),
        jnp.where(accepted, done, search), jnp.where(settled, done, _QUICK_AGAIN),
-       jnp.where(settled, done, _SEARCH), jnp.where(settled | hopeless, done, _RETRY)],
+       jnp.where(settled | hopeless, done, _SEARCH), jnp.where(settled | hopeless, done, _RETRY)],
       jnp.where(again, _RETRY, done))
   following, spent, exhausted = _budgeted(state, following, found, knobs, done)
   return State(following, best, state.anchor, state.recovered,
