@@ -26,10 +26,7 @@ whose loss is the user's function) stays in memory only.
 
 Matrix products are traced in float32 (`MATMUL_PRECISION`), never in an
 accelerator's faster TensorFloat-32 or bfloat16 passes.  Compiler options:
-`CPU_COMPILER_OPTIONS` on a CPU, XLA's defaults elsewhere.  An earlier
-tracker turned XLA:CPU's YNNPACK dot fusions off (batched MI histograms ran
-slower in them); the point-set registration's products are faster with them
-(benchmarks/README.md, implementation choices).
+`CPU_COMPILER_OPTIONS` on a CPU, XLA's defaults elsewhere.
 """
 
 from __future__ import annotations
@@ -62,11 +59,14 @@ TensorFloat-32 (10 mantissa bits): a homography then maps 500 px
 coordinates 0.5 px off, and a Gauss–Newton system loses its last digits.
 """
 
-CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1}
-"""XLA options of jaxpso's programs on a CPU: LLVM's level 1 (XLA's default is 2).
+CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1,
+                        "xla_cpu_experimental_ynn_fusion_type": ""}
+"""XLA options of jaxpso's programs on a CPU: LLVM's level 1 (XLA's default is 2), and no
+YNNPACK fusions (XLA's default hands some dots, element-wise and reduction fusions to YNNPACK).
 
-Their code ran 8–11 % faster at it, and compiled no slower (benchmarks/README.md,
-implementation choices).
+Their code ran 8–11 % faster at level 1, and compiled no slower; without YNNPACK's fusions
+`pso.run` ran 1.2–1.5× and `align` MI 0.93–0.96× the time (benchmarks/README.md, implementation
+choices).  An option the installed XLA does not know is left out (`_compiler_options`).
 """
 
 MAX_PROGRAMS = 16
@@ -475,10 +475,26 @@ def _trim(directory: pathlib.Path):
 
 
 def _compiler_options(types, default) -> dict:
-  """`CPU_COMPILER_OPTIONS` for a program whose arguments all live on CPU devices, else none."""
+  """`CPU_COMPILER_OPTIONS` the installed XLA knows, for a program whose arguments all live on
+  CPU devices; else none."""
   shardings = [default] + [placement for *_, placement in types if placement is not None]
   platforms = {device.platform for sharding in shardings for device in sharding.device_set}
-  return dict(CPU_COMPILER_OPTIONS) if platforms == {"cpu"} else {}
+  if platforms != {"cpu"}:
+    return {}
+  return {name: value for name, value in CPU_COMPILER_OPTIONS.items() if _known_option(name)}
+
+
+@functools.cache
+def _known_option(name: str) -> bool:
+  """Whether XLA takes the compile option `name` (an older one refuses a newer option's name)."""
+  lowered = jax.jit(lambda x: x + 1).lower(np.float32(0))
+  try:
+    lowered.compile(compiler_options={name: CPU_COMPILER_OPTIONS[name]})
+  except Exception as error:  # XlaRuntimeError or JaxRuntimeError, by JAX's version
+    if "No such compile option" in str(error):
+      return False
+    raise
+  return True
 
 
 @functools.cache
