@@ -65,7 +65,7 @@ CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1,
 YNNPACK fusions (XLA's default hands some dots, element-wise and reduction fusions to YNNPACK).
 
 Their code ran 8–11 % faster at level 1, and compiled no slower; without YNNPACK's fusions
-`pso.run` on 4 096 particles ran 1.4× as fast and `align` MI in 0.90–0.97× the time
+`pso.run` on 4 096 particles ran 1.4× as fast and `align` MI in 0.90–0.98× the time
 (benchmarks/README.md, implementation choices).  An option the installed XLA does not know is left out (`_compiler_options`).
 """
 
