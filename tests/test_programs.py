@@ -136,7 +136,8 @@ def test_an_option_the_installed_xla_does_not_know_is_left_out(monkeypatch):
     given = _recorded_options(monkeypatch)
     x, pair = _data(n=13)
     _affine(x, pair, scale=5.0)
-    known = {k: v for k, v in programs.CPU_COMPILER_OPTIONS.items() if k != "xla_cpu_no_such_option"}
+    known = {name: value for name, value in programs.CPU_COMPILER_OPTIONS.items()
+             if name != "xla_cpu_no_such_option"}
     assert given[-1] == known and len(given) == len(programs.CPU_COMPILER_OPTIONS) + 1  # probes
   finally:
     programs._known_option.cache_clear()

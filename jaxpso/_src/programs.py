@@ -66,7 +66,8 @@ YNNPACK fusions (XLA's default hands some dots, element-wise and reduction fusio
 
 Their code ran 8–11 % faster at level 1, and compiled no slower; without YNNPACK's fusions
 `pso.run` on 4 096 particles ran 1.4× as fast and `align` MI in 0.90–0.98× the time
-(benchmarks/README.md, implementation choices).  An option the installed XLA does not know is left out (`_compiler_options`).
+(benchmarks/README.md, implementation choices).  An option the installed XLA does not know is
+left out (`_compiler_options`).
 """
 
 MAX_PROGRAMS = 16

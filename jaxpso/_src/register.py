@@ -357,7 +357,7 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
   # stays under hopeless_quality, the image holds no match for the
   # similarity (NCC on an inverted image): no full search and no retry
   # (`config.HOPELESS_QUALITY`).
-  hopeless = searched.quality < knobs.hopeless_quality
+  ended = settled | (searched.quality < knobs.hopeless_quality)
   again = ((stage == _RETRY) & (merged.quality < knobs.retry_quality) & ~agree
            & (votes < _VOTES) & (state.retries < knobs.retries))
   best = batching.select(starting, start._replace(confirmed=accepted),
@@ -368,7 +368,7 @@ def _advance_align(state: State, found: problems.Candidate, contexts: problems.C
        stage == _SEARCH],
       [jnp.where(accepted, done, jnp.where(second_start, _FINE_START, search)),
        jnp.where(accepted, done, search), jnp.where(settled, done, _QUICK_AGAIN),
-       jnp.where(settled | hopeless, done, _SEARCH), jnp.where(settled | hopeless, done, _RETRY)],
+       jnp.where(ended, done, _SEARCH), jnp.where(ended, done, _RETRY)],
       jnp.where(again, _RETRY, done))
   following, spent, exhausted = _budgeted(state, following, found, knobs, done)
   return State(following, best, state.anchor, state.recovered,
