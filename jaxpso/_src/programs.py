@@ -60,13 +60,17 @@ coordinates 0.5 px off, and a Gauss–Newton system loses its last digits.
 """
 
 CPU_COMPILER_OPTIONS = {"xla_backend_optimization_level": 1,
-                        "xla_cpu_experimental_ynn_fusion_type": ""}
-"""XLA options of jaxpso's programs on a CPU: LLVM's level 1 (XLA's default is 2), and no
-YNNPACK fusions (XLA's default hands some dots, element-wise and reduction fusions to YNNPACK).
+                        "xla_cpu_experimental_ynn_fusion_type": "",
+                        "xla_cpu_use_fusion_emitters": False}
+"""XLA options of jaxpso's programs on a CPU: LLVM's level 1 (XLA's default is 2), no YNNPACK
+fusions (XLA's default hands some dots, element-wise and reduction fusions to YNNPACK), and
+fusions emitted as LLVM IR directly rather than through XLA:CPU's MLIR fusion emitters.
 
 Their code ran 8–11 % faster at level 1, and compiled no slower; without YNNPACK's fusions
-`pso.run` on 4 096 particles ran 1.4× as fast and `align` MI in 0.90–0.98× the time
-(benchmarks/README.md, implementation choices).  An option the installed XLA does not know is
+`pso.run` on 4 096 particles ran 1.4× as fast and `align` MI in 0.90–0.98× the time; without
+the fusion emitters everything compiled in 0.68× the time, `align` NCC ran in 0.76–0.91× the
+time, MI 0.93–1.04×, `track` one region 0.92–1.02×, but 64 regions 1.14× (benchmarks/README.md,
+implementation choices).  An option the installed XLA does not know is
 left out (`_compiler_options`).
 """
 
