@@ -1,7 +1,7 @@
 """XLA:CPU option sets compared on the same workloads, in one process, paired round by round.
 
 `python benchmarks/compiler_options.py --variants '{"xla_cpu_use_fusion_emitters": true};{}'
-[--rounds 12] [--parts track,batch,align] [--name compiler_options]` compiles every
+[--rounds 12] [--parts track,batch,video,align] [--name compiler_options]` compiles every
 workload's programs once per variant (each variant's options laid over
 `programs.CPU_COMPILER_OPTIONS`, the persistent cache off), keeps each
 variant's program table, and then times every workload under each variant in
@@ -16,6 +16,8 @@ Workloads (`--parts`):
   over an 80-frame synthetic sequence of 240×320 and of 480×640 frames (a jump
   at frame 40), as runtime.py's track part;
 * batch: 64 regions of 48×48 over 20 frames of 240×320 (runtime.py's batch);
+* video: MI and NCC on 60 frames of video.py's camera and brick clips (240
+  and 280 px regions, 360×480 frames);
 * align: MI and NCC on 30 trials of each of runtime.py's cases noise,
   shading, clean and real_pairs, the trials of a case one after another.
 
@@ -38,6 +40,7 @@ import batch
 import common
 import jaxpso
 import runtime
+import video
 from jaxpso._src import programs
 
 
@@ -57,6 +60,13 @@ def workloads(parts: list) -> dict:
                                               roi_size=(100, 100))
     boxes = batch.regions(sequence, 64)
     calls["track 64 regions of 48×48"] = lambda: jaxpso.track(sequence.frames, boxes)
+  if "video" in parts:
+    for seed, name in enumerate(("camera", "brick")):
+      video_, _, box = video.make_clip(name, 60, seed)
+      for similarity in ("mi", "ncc"):
+        config = jaxpso.TrackConfig(similarity=similarity)
+        calls[f"track {similarity.upper()}, video.py's {name}"] = (
+            lambda v=video_, b=box, c=config: jaxpso.track(v, b, config=c))
   if "align" in parts:
     photos = [common.photo(name) for name in common.PHOTOS]
     for case in ("noise", "shading", "clean", "real_pairs"):
@@ -74,7 +84,7 @@ def main():
   parser.add_argument("--variants", required=True,
                       help="';'-separated JSON objects of options, the first the reference")
   parser.add_argument("--rounds", type=int, default=12)
-  parser.add_argument("--parts", default="track,batch,align")
+  parser.add_argument("--parts", default="track,batch,video,align")
   parser.add_argument("--name", default="compiler_options")
   args = parser.parse_args()
   variants = [json.loads(text) for text in args.variants.split(";")]

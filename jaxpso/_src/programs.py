@@ -68,9 +68,9 @@ fusions emitted as LLVM IR directly rather than through XLA:CPU's MLIR fusion em
 
 Their code ran 8–11 % faster at level 1, and compiled no slower; without YNNPACK's fusions
 `pso.run` on 4 096 particles ran 1.4× as fast and `align` MI in 0.90–0.98× the time; without
-the fusion emitters everything compiled in 0.68× the time, `align` NCC ran in 0.76–0.91× the
-time, MI 0.93–1.04×, `track` one region 0.92–1.02×, but 64 regions 1.14× (benchmarks/README.md,
-implementation choices).  An option the installed XLA does not know is
+the fusion emitters everything compiled in 0.58–0.68× the time, `align` NCC ran in 0.76–0.91×
+the time, MI 0.93–1.04×, `track` one region 0.73–1.04×, but 64 regions 1.14–1.24×
+(benchmarks/README.md, implementation choices).  An option the installed XLA does not know is
 left out (`_compiler_options`).
 """
 
