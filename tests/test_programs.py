@@ -117,7 +117,7 @@ def _recorded_options(monkeypatch) -> list:
 def test_programs_on_a_cpu_compile_with_the_cpu_options(monkeypatch):
   # LLVM's level 1 ran align's and the frame step's code 8-11 % faster than
   # XLA's default, without YNNPACK's fusions pso.run ran up to 1.4x as fast, and
-  # without the MLIR fusion emitters align NCC about 1.25x as fast
+  # without the MLIR fusion emitters align NCC 1.1-1.3x as fast
   # (benchmarks/README.md, implementation choices).
   for name in programs.CPU_COMPILER_OPTIONS:
     assert programs._known_option(name), name  # the installed XLA takes each
