@@ -101,19 +101,23 @@ def test_mi_refinement_reaches_a_small_smooth_region_from_pixels_off(region, fra
   assert error < 1.0, error
 
 
-@pytest.mark.parametrize("noise, low, error", [(0.03, 0.9, 0.1), (0.15, 0.5, 0.4)])
-def test_noise_does_not_send_a_confirmed_start_to_the_swarm(noise, low, error):
+@pytest.mark.parametrize("noise, low, error, spent",
+                         [(0.03, 0.9, 0.1, 20), (0.15, 0.5, 0.4, 24)])
+def test_noise_does_not_send_a_confirmed_start_to_the_swarm(noise, low, error, spent):
   """Under image noise a right alignment's quality stays under accept_quality; where
   Gauss–Newton from the start and from the coarsest level agree on a match of quality
   >= 0.35 (`register._STARTS_AGREE_QUALITY`), that is the answer, without the swarm.  Noise
-  σ 0.15: quality 0.56-0.57, 27-30 evaluations, 0.25-0.31 px (with the floor at 0.8 the quick
-  search ran: 330-334); σ 0.03: 0.949, 0.04 px."""
+  σ 0.15: quality 0.56-0.57, 0.25-0.31 px (with the floor at 0.8 the quick search ran:
+  330-334 evaluations); σ 0.03: 0.949, 0.04 px.  The refinement from level 1 stops there,
+  within `problem.SETTLE_PX` of the coarse one, whose full-resolution estimate stands:
+  16-19 and 19-22 evaluations (run to full resolution 20-23 and 27-30, and the noisier
+  level-1 estimate itself 0.13-0.18 px off at σ 0.03)."""
   noisy = np.clip(IMAGE + np.random.default_rng(3).normal(0, noise, IMAGE.shape), 0, 1)
   config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "levels": None})
   for seed in range(3):
     found = jaxpso.align(noisy.astype(np.float32), TEMPLATE, _perturbed(seed, 2.0), config=config)
     assert low < float(found.quality) < config.accept_quality
-    assert int(found.num_evaluations) < 60, int(found.num_evaluations)
+    assert int(found.num_evaluations) <= spent, int(found.num_evaluations)
     assert _corner_error(found.homography) < error
 
 

@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxpso._src import atlas
+from jaxpso._src import homography
 from jaxpso._src import measures
 from jaxpso._src import motion
 from jaxpso._src import pso
@@ -298,23 +299,43 @@ class Problem:
     stats = self._scores(h, level, level, _GN_CHUNK, (), self.ranges(base), bins)
     return self._loss(stats, level, u, base)
 
-  def descend(self, u, base, top):
-    """u refined by Gauss–Newton from level `top` down to full resolution → (u, steps)."""
+  def descend(self, u, base, top, settle=None):
+    """u refined by Gauss–Newton from level `top` down to full resolution → (u, steps, settled).
+
+    `settle`: ((3, 3) homography, () float32 pixels) or None: Gauss–Newton
+    ends above full resolution once a level's estimate is within that many
+    pixels of the homography's (the largest corner distance; 0: never), and
+    `settled` () bool says so: that estimate, refined at full resolution,
+    then stands for this one (two estimates of one basin share its finer
+    levels).
+    """
     mi = self.config.similarity == "mi"  # a gain and bias first, the remap at level 0 (`refine`)
+    if settle is not None:
+      rect = motion.corners(self.size)
+      settled_corners = homography.apply_to_points(settle[0], rect)[0]
 
     def body(carry):
-      u, level, steps = carry
+      u, level, steps, _ = carry
       bins = self._template_bins(level)
       u, taken = refine.levenberg_marquardt(
           u, lambda v, first: self._linearise(v, base, level, bins, first),
           lambda v: self._level_loss(v, base, level, bins), self.knobs.refine_steps,
           jnp.where(level > 0, _COARSE_TOLERANCE, _TOLERANCE)
           * jnp.exp2(level.astype(jnp.float32)), first=mi, second=level == 0, polish=not mi)
-      return u, level - 1, steps + taken
+      done = jnp.asarray(False)
+      if settle is not None:
+        if self.config.motion == "homography":
+          now = self._corners(u, base)
+        else:
+          now = homography.apply_to_points(self.homography(u, base), rect)[0]
+        gap = jnp.max(jnp.linalg.norm(now - settled_corners, axis=-1))
+        done = (level >= 1) & (settle[1] > 0) & (gap <= settle[1])
+      return u, level - 1, steps + taken, done
 
-    u, _, steps = jax.lax.while_loop(lambda c: c[1] >= 0, body,
-                                     (u, jnp.asarray(top, jnp.int32), jnp.zeros([], jnp.int32)))
-    return u, steps
+    u, _, steps, settled = jax.lax.while_loop(
+        lambda c: (c[1] >= 0) & ~c[3], body,
+        (u, jnp.asarray(top, jnp.int32), jnp.zeros([], jnp.int32), jnp.asarray(False)))
+    return u, steps, settled
 
   # --------------------------------------------------------------- the swarm
   def _lift(self, translation):
