@@ -182,7 +182,7 @@ ALIGN = (Stage(top=1), Stage(settle=_AGREE_PX), Stage(swarm=True, quick=True, to
 """`align`'s stages: the start refined from the coarsest level (accepted alone from
 `_SURE_QUALITY`), then from level 1 (accepted also where the two agree; it stops at level 1 where
 it reaches the first's estimate, which stands: runtime.py's real pairs, MI's median 17.5 ms
-instead of 20.2, runtime_settle.md), a quick search and a second one (other
+instead of 20.2, benchmarks/results/runtime_settle.md), a quick search and a second one (other
 seeds; one level finer where the first disagreed with the starts' best), the search, the retry
 one level finer (run again with other seeds, up to `TrackConfig.retries` times, while it
 disagrees with the best)."""
