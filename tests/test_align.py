@@ -109,9 +109,9 @@ def test_noise_does_not_send_a_confirmed_start_to_the_swarm(noise, low, error, s
   >= 0.35 (`register._STARTS_AGREE_QUALITY`), that is the answer, without the swarm.  Noise
   σ 0.15: quality 0.56-0.57, 0.25-0.31 px (with the floor at 0.8 the quick search ran:
   330-334 evaluations); σ 0.03: 0.949, 0.04 px.  The refinement from level 1 stops there,
-  within `problem.SETTLE_PX` of the coarse one, whose full-resolution estimate stands:
-  16-19 and 19-22 evaluations (run to full resolution 20-23 and 27-30, and the noisier
-  level-1 estimate itself 0.13-0.18 px off at σ 0.03)."""
+  within 1 px of the coarse one (`Stage.settle` in `register.ALIGN`), whose full-resolution
+  estimate stands: 16-19 and 19-22 evaluations (run to full resolution 20-23 and 27-30, and
+  the noisier level-1 estimate itself 0.13-0.18 px off at σ 0.03)."""
   noisy = np.clip(IMAGE + np.random.default_rng(3).normal(0, noise, IMAGE.shape), 0, 1)
   config = jaxpso.TrackConfig(**{**CONFIG.__dict__, "levels": None})
   for seed in range(3):

@@ -55,6 +55,13 @@ def corners(shape) -> jax.Array:
                     jnp.stack([right, bottom]), jnp.stack([zero, bottom])])
 
 
+def corner_gap(first, second, size) -> jax.Array:
+  """() the largest distance between the template corners two (3, 3) homographies map."""
+  rect = corners(size)
+  gap = homography.apply_to_points(first, rect)[0] - homography.apply_to_points(second, rect)[0]
+  return jnp.max(jnp.linalg.norm(gap, axis=-1))
+
+
 def dimension(motion: str, dof: int) -> int:
   """Number of search parameters of a motion model."""
   return 8 if motion == "homography" else dof

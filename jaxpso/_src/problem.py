@@ -27,7 +27,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxpso._src import atlas
-from jaxpso._src import homography
 from jaxpso._src import measures
 from jaxpso._src import motion
 from jaxpso._src import pso
@@ -304,15 +303,12 @@ class Problem:
 
     `settle`: ((3, 3) homography, () float32 pixels) or None: Gauss–Newton
     ends above full resolution once a level's estimate is within that many
-    pixels of the homography's (the largest corner distance; 0: never), and
+    pixels of the homography (`motion.corner_gap`; 0: never), and
     `settled` () bool says so: that estimate, refined at full resolution,
     then stands for this one (two estimates of one basin share its finer
     levels).
     """
     mi = self.config.similarity == "mi"  # a gain and bias first, the remap at level 0 (`refine`)
-    if settle is not None:
-      rect = motion.corners(self.size)
-      settled_corners = homography.apply_to_points(settle[0], rect)[0]
 
     def body(carry):
       u, level, steps, _ = carry
@@ -324,11 +320,7 @@ class Problem:
           * jnp.exp2(level.astype(jnp.float32)), first=mi, second=level == 0, polish=not mi)
       done = jnp.asarray(False)
       if settle is not None:
-        if self.config.motion == "homography":
-          now = self._corners(u, base)
-        else:
-          now = homography.apply_to_points(self.homography(u, base), rect)[0]
-        gap = jnp.max(jnp.linalg.norm(now - settled_corners, axis=-1))
+        gap = motion.corner_gap(self.homography(u, base), settle[0], self.size)
         done = (level >= 1) & (settle[1] > 0) & (gap <= settle[1])
       return u, level - 1, steps + taken, done
 

@@ -60,7 +60,7 @@ _AGREE_PX = 1.0
 # wrong basin (Baker-Matthews, gain, σ 4: 6.2 px off at 0.55, the full
 # search then finding the truth at 0.98).
 _VOTES = 3
-# align counts a vote within this many pixels (`corner_gap`): on real photo
+# align counts a vote within this many pixels (`motion.corner_gap`): on real photo
 # pairs and under noise the top of a match's basin is flat, and the stages
 # that find it land 1-2 px apart, so every retry ran.  Replayed on traces of
 # convergence.py's trials (36 cells × 50, MI) 2 px loses no success, 3 px
@@ -129,13 +129,6 @@ def better(first: problems.Candidate, second: problems.Candidate) -> problems.Ca
   best = batching.select(first.loss <= second.loss, first, second)
   return best._replace(num_iterations=first.num_iterations + second.num_iterations,
                        num_evaluations=first.num_evaluations + second.num_evaluations)
-
-
-def corner_gap(first, second, size) -> jax.Array:
-  """() the largest distance between the template corners two (3, 3) homographies map."""
-  rect = motion.corners(size)
-  gap = homography.apply_to_points(first, rect)[0] - homography.apply_to_points(second, rect)[0]
-  return jnp.max(jnp.linalg.norm(gap, axis=-1))
 
 
 # ------------------------------------------------------------------- stages
@@ -319,19 +312,19 @@ def _starts(state: State, found: problems.Candidate, contexts: problems.Context,
 
 def _agrees(first: problems.Candidate, second: problems.Candidate,
             contexts: problems.Context) -> jax.Array:
-  """(C,) bool: the two candidates' homographies agree within _AGREE_PX (`corner_gap`)."""
-  return jax.vmap(corner_gap)(first.homography, second.homography,
+  """(C,) bool: the two candidates' homographies agree within _AGREE_PX (`motion.corner_gap`)."""
+  return jax.vmap(motion.corner_gap)(first.homography, second.homography,
                               contexts.template.size) <= _AGREE_PX
 
 
 def _seen_and_votes(state: State, found: problems.Candidate, best: problems.Candidate,
                     contexts: problems.Context, within: float = _AGREE_PX) -> tuple:
   """(seen, num_seen, votes (C,) int32): `found` recorded, and how many of the recorded
-  estimates agree with `best` within `within` pixels (`corner_gap`)."""
+  estimates agree with `best` within `within` pixels (`motion.corner_gap`)."""
   slot = jnp.minimum(state.num_seen, _SEEN - 1)
   seen = state.seen.at[jnp.arange(slot.shape[0]), slot].set(found.homography)
   count = state.num_seen + 1
-  gaps = jax.vmap(jax.vmap(corner_gap, (0, None, None)))(seen, best.homography,
+  gaps = jax.vmap(jax.vmap(motion.corner_gap, (0, None, None)))(seen, best.homography,
                                                          contexts.template.size)
   agree = (jnp.arange(_SEEN)[None] < jnp.minimum(count, _SEEN)[:, None]) & (gaps <= within)
   return seen, count, jnp.sum(agree, axis=1, dtype=jnp.int32)
