@@ -19,8 +19,9 @@ Replaying: a trial stops after the first stage where the rule holds, and
 keeps the best so far. `RULES` holds the rules as built, a test of the
 best's quality against the other estimates' ("a peak clear of its
 rivals") after the full search, two agreeing estimates at the first quick
-search with the third far below, giving up below a quality after the
-quick searches, and smaller evaluation budgets than the default 20 000
+search with the third far below (by a margin, or by a ratio), giving up
+below a quality after the first or both quick searches, and smaller
+evaluation budgets than the default 20 000
 (`TrackConfig.max_evaluations`). Per rule the report gives the convergence trials lost and
 gained against the recorded end (each set), and per runtime case the
 success and median / p90 / p99 / max evaluations. Evaluations are
@@ -148,6 +149,25 @@ def two_votes_at_quick(margin: float):
   return rule
 
 
+def clear_peak_at_quick(ratio: float):
+  """At the first quick search: it agrees with the starts' best (within `register._AGREE_PX`), the
+  best at least 0.35, every estimate elsewhere under `ratio` × its quality."""
+  def rule(stages):
+    if stages[-1][0] != register._QUICK or len(stages) != 3:
+      return False
+    starts = max(stages[:2], key=lambda s: s[1])
+    best, _, rival = _best_and_rival(stages)
+    return (corner_gap(stages[2][2], starts[2]) <= register._AGREE_PX and best >= 0.35
+            and rival < ratio * best)
+  return rule
+
+
+def hopeless_after_first_quick(quality: float):
+  """After the first quick search: the best under `quality` (no second one, no full search)."""
+  return lambda stages: (stages[-1][0] == register._QUICK and len(stages) == 3
+                         and stages[-1][3] < quality)
+
+
 def hopeless_after_quick(quality: float):
   """After the second quick search: the best under `quality` (no full search)."""
   return lambda stages: stages[-1][0] == register._QUICK_AGAIN and stages[-1][3] < quality
@@ -164,7 +184,13 @@ RULES = {
     "clear peak after the search, margin 0.15": clear_peak(0.15),
     "two votes at the first quick search, third 0.30 under": two_votes_at_quick(0.30),
     "two votes at the first quick search, third 0.45 under": two_votes_at_quick(0.45),
+    "the first quick search agrees with the starts' best, every other estimate under 0.3 × it":
+        clear_peak_at_quick(0.3),
+    "the first quick search agrees with the starts' best, every other estimate under 0.5 × it":
+        clear_peak_at_quick(0.5),
     "give up under 0.3 after the quick searches": hopeless_after_quick(0.3),
+    **{f"give up under {q} after the first quick search": hopeless_after_first_quick(q)
+       for q in (0.2, 0.3)},
     **{f"a budget of {b} evaluations": budget(b) for b in (4000, 8000, 12000)},
 }
 
