@@ -135,12 +135,11 @@ def _similarity(centre, scale: float, angle_deg: float, template_shape) -> np.nd
   rows, cols = template_shape
   a = math.radians(angle_deg)
   c, s = scale * math.cos(a), scale * math.sin(a)
-  tc = np.array([(cols - 1) / 2, (rows - 1) / 2])
-  rotation = np.array([[c, -s], [s, c]])
-  h = np.eye(3)
-  h[:2, :2] = rotation
-  h[:2, 2] = np.asarray(centre) - rotation @ tc
-  return h
+  x, y = (cols - 1) / 2, (rows - 1) / 2
+  # In Python floats: called for every map and refinement try, NumPy's small
+  # arrays cost ten times as much.
+  return np.array([[c, -s, centre[0] - (c * x - s * y)], [s, c, centre[1] - (s * x + c * y)],
+                   [0.0, 0.0, 1.0]])
 
 
 def _masked_correlation(picture: np.ndarray, patch: np.ndarray, first, last,
@@ -207,21 +206,26 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
     if side + 2 > min(picture.shape):
       return []
     # level patch pixel q ← template pixel p: q = factor·R·(p − centre) + patch centre
-    to_patch = _similarity(np.full(2, (side - 1) / 2), factor, angle, template.shape)[:2]
+    to_patch = _similarity(((side - 1) / 2,) * 2, factor, angle, template.shape)[:2]
     patch = cv2.warpAffine(blurred, to_patch, (side, side), flags=cv2.INTER_LINEAR)
     mask = None
     if whole:  # the template's footprint, less its interpolated rim
       mask = (cv2.warpAffine(np.ones_like(blurred), to_patch, (side, side),
                              flags=cv2.INTER_LINEAR) > 0.999).astype(np.float32)
-    if float(np.std(patch if mask is None else patch[mask > 0])) < checks.MIN_TEXTURE / 4:
+    spread = cv2.meanStdDev(patch, mask=None if mask is None else (mask > 0).astype(np.uint8))[1]
+    if float(spread[0, 0]) < checks.MIN_TEXTURE / 4:  # np.std: 15 µs a call, this 2
       return []
     pad = int(side * (1 - _PARTIAL_SHARE)) if border else 0  # the patch's reach outside
-    corner = np.full(2, -pad)  # the patch's top-left places tried, level pixels
-    last = np.array(picture.shape[::-1]) - side + pad
+    # The patch's top-left places tried (level pixels), in Python ints: NumPy's
+    # small arrays cost more than the small maps of a refinement.
+    corner = [-pad, -pad]
+    last = [picture.shape[1] - side + pad, picture.shape[0] - side + pad]
     if around is not None:  # a window of ±_REFINE_PX level pixels around the centre
-      low = np.round(around / 2 ** level - (side - 1) / 2).astype(int) - _REFINE_PX
-      corner = np.clip(low, corner, last)
-      last = np.minimum(corner + 2 * _REFINE_PX, last)
+      for k in range(2):
+        low = round(float(around[k]) / 2 ** level - (side - 1) / 2) - _REFINE_PX
+        corner[k] = min(max(low, corner[k]), last[k])
+        last[k] = min(corner[k] + 2 * _REFINE_PX, last[k])
+    corner, last = np.array(corner), np.array(last)
     if pad:
       scores = _masked_correlation(picture, patch, corner, last, _PARTIAL_SHARE)
       if around is None:  # the places wholly inside are the other search's
@@ -233,11 +237,12 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
       scores = cv2.matchTemplate(window, patch, cv2.TM_CCOEFF_NORMED, mask=mask)
     # At the edge, half patches anticorrelated with the frame outscored an MI
     # target coming back (challenges.py, seed 1, out of view): not counted.
-    scores = np.abs(scores) if either_sign and not border else scores
-    scores = np.where(np.isfinite(scores), scores, -1.0)
+    if either_sign and not border:
+      np.abs(scores, out=scores)  # both maps are this call's own
+    scores[~np.isfinite(scores)] = -1.0
     found = []
     for _ in range(places):
-      y, x = np.unravel_index(int(np.argmax(scores)), scores.shape)
+      y, x = divmod(int(np.argmax(scores)), scores.shape[1])
       found.append((float(scores[y, x]), (corner + [x, y] + (side - 1) / 2) * 2 ** level))
       reach = side // 2
       scores[max(y - reach, 0):y + reach + 1, max(x - reach, 0):x + reach + 1] = -np.inf
@@ -263,11 +268,13 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
                            places=_PARTIAL_PLACES if border else 1):
           peaks.append(found + (scale, angle, level))
     peaks.sort(key=lambda p: -p[0])
-    chosen = []
+    chosen, spots = [], []  # spots: the chosen places as Python floats (math.dist's fast path)
     for peak in peaks:
-      if all(np.linalg.norm(peak[1] - other[1]) > _SAME_PLACE * disc * min(peak[2], other[2])
-             for other in chosen):
+      spot = (float(peak[1][0]), float(peak[1][1]))
+      if all(math.dist(spot, there) > _SAME_PLACE * disc * min(peak[2], other[2])
+             for there, other in zip(spots, chosen)):
         chosen.append(peak)
+        spots.append(spot)
       if len(chosen) == _RERANK * wanted:
         break
 
