@@ -151,26 +151,22 @@ def two_votes_at_quick(margin: float):
 
 def clear_peak_at_quick(ratio: float):
   """At the first quick search: it agrees with the starts' best (within `register._AGREE_PX`), the
-  best at least 0.35, every estimate elsewhere under `ratio` × its quality."""
+  best at least `register._STARTS_AGREE_QUALITY`, every estimate elsewhere under `ratio` × its
+  quality."""
   def rule(stages):
     if stages[-1][0] != register._QUICK or len(stages) != 3:
       return False
     starts = max(stages[:2], key=lambda s: s[1])
     best, _, rival = _best_and_rival(stages)
-    return (corner_gap(stages[2][2], starts[2]) <= register._AGREE_PX and best >= 0.35
-            and rival < ratio * best)
+    return (corner_gap(stages[2][2], starts[2]) <= register._AGREE_PX
+            and best >= register._STARTS_AGREE_QUALITY and rival < ratio * best)
   return rule
 
 
-def hopeless_after_first_quick(quality: float):
-  """After the first quick search: the best under `quality` (no second one, no full search)."""
-  return lambda stages: (stages[-1][0] == register._QUICK and len(stages) == 3
-                         and stages[-1][3] < quality)
-
-
-def hopeless_after_quick(quality: float):
-  """After the second quick search: the best under `quality` (no full search)."""
-  return lambda stages: stages[-1][0] == register._QUICK_AGAIN and stages[-1][3] < quality
+def hopeless_after(stage: int, quality: float):
+  """After `stage` (the first or the second quick search): the best under `quality` (no later
+  quick search, no full search)."""
+  return lambda stages: stages[-1][0] == stage and stages[-1][3] < quality
 
 
 def budget(evaluations: int):
@@ -188,8 +184,8 @@ RULES = {
         clear_peak_at_quick(0.3),
     "the first quick search agrees with the starts' best, every other estimate under 0.5 × it":
         clear_peak_at_quick(0.5),
-    "give up under 0.3 after the quick searches": hopeless_after_quick(0.3),
-    **{f"give up under {q} after the first quick search": hopeless_after_first_quick(q)
+    "give up under 0.3 after the quick searches": hopeless_after(register._QUICK_AGAIN, 0.3),
+    **{f"give up under {q} after the first quick search": hopeless_after(register._QUICK, q)
        for q in (0.2, 0.3)},
     **{f"a budget of {b} evaluations": budget(b) for b in (4000, 8000, 12000)},
 }

@@ -314,7 +314,7 @@ def _agrees(first: problems.Candidate, second: problems.Candidate,
             contexts: problems.Context) -> jax.Array:
   """(C,) bool: the two candidates' homographies agree within _AGREE_PX (`motion.corner_gap`)."""
   return jax.vmap(motion.corner_gap)(first.homography, second.homography,
-                              contexts.template.size) <= _AGREE_PX
+                                     contexts.template.size) <= _AGREE_PX
 
 
 def _seen_and_votes(state: State, found: problems.Candidate, best: problems.Candidate,
@@ -325,7 +325,7 @@ def _seen_and_votes(state: State, found: problems.Candidate, best: problems.Cand
   seen = state.seen.at[jnp.arange(slot.shape[0]), slot].set(found.homography)
   count = state.num_seen + 1
   gaps = jax.vmap(jax.vmap(motion.corner_gap, (0, None, None)))(seen, best.homography,
-                                                         contexts.template.size)
+                                                                contexts.template.size)
   agree = (jnp.arange(_SEEN)[None] < jnp.minimum(count, _SEEN)[:, None]) & (gaps <= within)
   return seen, count, jnp.sum(agree, axis=1, dtype=jnp.int32)
 
