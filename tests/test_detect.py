@@ -158,7 +158,7 @@ def test_detect_aligns_a_best_short_of_acceptance_again_with_the_full_search(sce
   truth = _placed(80, np.array([200.0, 110.0]), 1.5, 150.0, tilt=[[4, -3], [0, 5], [-5, 0], [3, 2]])
   start = _placed(80, np.array([214.0, 103.0]), 1.5, 170.0)
   frame = _frame(template, truth, background)
-  monkeypatch.setattr(detection, "candidates", lambda *a, **k: [start])
+  monkeypatch.setattr(detection, "candidates", lambda *a, **k: ([[start]], []))
   ran, real = [], detection.align
   monkeypatch.setattr(detection, "align", lambda *a, **k: ran.append(real(*a, **k)) or ran[-1])
   config = jaxpso.TrackConfig(similarity="ncc")
@@ -169,6 +169,29 @@ def test_detect_aligns_a_best_short_of_acceptance_again_with_the_full_search(sce
   bounded = detection.search(frame, template, config, 0, detection.SCALES, detection.ANGLES, 1,
                              None)
   assert _error(bounded.homography, truth, 80) > 10.0 and float(bounded.quality) < 0.8
+
+
+def test_places_inside_are_left_once_the_best_is_clear_ahead(scene, monkeypatch):
+  """With acceptance out of reach, the places inside are aligned until the best is twice
+  another's and at least half the lost threshold; the places partly outside are aligned
+  whatever.  The right place first (MI 0.97): it and the next (0.20) are aligned.  Two wrong
+  places first (0.20 and 0.15: neither clear ahead): the right third one ends it."""
+  template, background = scene
+  truth = _placed(80, np.array([200.0, 110.0]), 1.5, 150.0)
+  frame = _frame(template, truth, background)
+  near = _placed(80, np.array([203.0, 108.0]), 1.5, 155.0)
+  far = [_placed(80, np.array(c), 1.0, a) for c, a in (((80, 70), 0), ((250, 190), 90),
+                                                        ((70, 180), -60))]
+  ran, real = [], detection.align
+  monkeypatch.setattr(detection, "align", lambda *a, **k: ran.append(real(*a, **k)) or ran[-1])
+  quick = detection.bounded(jaxpso.TrackConfig())
+  for inside, aligned in (([near] + far, 2), (far[:2] + [near, far[2]], 3)):
+    ran.clear()
+    best = detection._best_of(frame, template, [[h] for h in inside], [[far[2]]], quick, 0,
+                              None, np.inf, True)
+    assert _error(best.homography, truth, 80) < 0.3
+    qualities = sorted(float(r.quality) for r in ran[:aligned])
+    assert len(ran) == aligned + 1 and qualities[-1] >= 2 * qualities[-2], qualities
 
 
 def test_detect_says_why_it_finds_no_place(scene):

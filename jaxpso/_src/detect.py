@@ -19,7 +19,9 @@ own start and the best of them are refined on a deeper pyramid than the
 template's default.  Each candidate is then a start of a bounded `align`
 (Gauss–Newton from the coarsest level, then from level 1, one quick swarm
 where those fall short), best first, until one reaches
-`TrackConfig.accept_quality`; the best, where it falls short of that, is
+`TrackConfig.accept_quality` or is clearly ahead of another (`_CLEAR_AHEAD`:
+evidence that does not rest on the quality's level, which differs from one
+image to the next); the best, where it falls short of the first, is
 aligned again with the caller's config (retries, the full search).
 So `detect` adds no compiled program: it runs `align`'s.  With `partial`,
 places where the inner square lies partly outside the image are correlated
@@ -91,6 +93,17 @@ _REFINE_LEVELS, _REFINE_PX = 2, 3
 # (benchmarks/results/detection.md: 96 % within 2 px with the coarse ranking,
 # 98 % with this one).
 _RERANK = 16
+# The places wholly inside are aligned, best first, until the best one's
+# quality is _CLEAR_AHEAD times every other aligned place's (at least two,
+# the best at least 1/_CLEAR_AHEAD of the lost threshold): the coarse ranking
+# put the target first, and the next place confirmed it is not a tie.  MI's
+# right places score 0.59–0.97 in detection.py's scenes, wrong ones
+# 0.01–0.46.  Replayed on every place's recorded `bounded` alignment
+# (2026-12-07; detection.py's scenes, seeds 0 and 1, 100 trials each, MI
+# and NCC; 60 trials at 3:1 and 6:1, MI): no trial lost, MI's alignments
+# per detection 3.5-3.6 → 2.0 (squares), 7.0 → 4.2 (3:1), 7.8 → 5.6 (6:1),
+# NCC's 1.6-1.7 → 1.3-1.4.  Places partly outside are aligned whatever.
+_CLEAR_AHEAD = 2.0
 # `detect(partial=True)` correlates the template's inner square where at
 # least this share of it lies inside the image (a template about half
 # inside), over that share alone.
@@ -163,14 +176,17 @@ def _masked_correlation(picture: np.ndarray, patch: np.ndarray, first, last,
 
 def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: int,
                either_sign: bool, partial=None):
-  """Up to `count` (3, 3) float64 starts, best first, from the coarse correlation stage; for an
-  elongated template (`_ELONGATED`) two per place, its own and a variant (`likeliest`).
+  """(places wholly inside, places partly outside): lists of places, best first, each a list
+  of (3, 3) float64 starts from the coarse correlation stage, up to `count` places inside; a
+  place's one start, or for an elongated template (`_ELONGATED`) two, its own and a variant
+  (`likeliest`).
 
   image (H, W), template (h, w): float32 grey.  `scales`, `angles` (low,
   high): the ranges searched (angles in degrees); `either_sign`: anticorrelation
-  counts as a match too; `partial` (scales, angles) ranges: then
-  `_PARTIAL_CANDIDATES` more within them, of places where up to
-  `1 - _PARTIAL_SHARE` of the template's inner square lies outside the image.
+  counts as a match too; `partial` (scales, angles) ranges: up to
+  `_PARTIAL_CANDIDATES` places partly outside within them, where up to
+  `1 - _PARTIAL_SHARE` of the template's inner square lies outside the image
+  (None: none).
   """
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
 
@@ -299,12 +315,12 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
                     key=lambda c: -c[0])
     finished = [refine(c, _REFINE_LEVELS - 1) for c in ranked[:wanted]]
     if not elongated or border:
-      return [_similarity(c[1], c[2], c[3], template.shape) for c in finished]
+      return [[_similarity(c[1], c[2], c[3], template.shape)] for c in finished]
     steps = range(-_VARIANT_STEPS, _VARIANT_STEPS + 1)
-    return [h for c in finished for h in (
-        _similarity(c[1], c[2], c[3], template.shape),
-        likeliest([_similarity(c[1], c[2] * _VARIANT_RATIO ** i, c[3] + _VARIANT_DEG * j,
-                               template.shape) for i in steps for j in steps if i or j]))]
+    return [[_similarity(c[1], c[2], c[3], template.shape),
+             likeliest([_similarity(c[1], c[2] * _VARIANT_RATIO ** i, c[3] + _VARIANT_DEG * j,
+                                    template.shape) for i in steps for j in steps if i or j])]
+            for c in finished]
 
   def likeliest(starts):
     """The one of `starts` ((3, 3) each) at which the image, mapped back onto the template,
@@ -319,8 +335,8 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
                     if inside.sum() >= 0.25 * rows * cols else -1.0)
     return starts[int(np.argmax(scores))]
 
-  return starts(count, False, scales, angles) + (
-      starts(_PARTIAL_CANDIDATES, True, *partial) if partial is not None else [])
+  return (starts(count, False, scales, angles),
+          starts(_PARTIAL_CANDIDATES, True, *partial) if partial is not None else [])
 
 
 def _elongated(shape) -> bool:
@@ -349,7 +365,8 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
   `angles`, scaled within `scales` and somewhat tilted (the refinement
   is a full homography).  A coarse correlation over the whole image picks
   candidate places (module docstring); each is refined by `align`, best
-  first, until one reaches `TrackConfig.accept_quality`; a best short of it
+  first, until one reaches `TrackConfig.accept_quality` or is twice every
+  other's quality (`_CLEAR_AHEAD`); a best short of the first
   is aligned again from there with `config` (retries, the full search).
 
   Args:
@@ -419,13 +436,13 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
   Its counts (`num_iterations`, `num_evaluations`) sum every alignment run.  None where no
   place could be correlated (the template does not fit, or is flat at every scale)."""
   either_sign = _EITHER_SIGN[config.similarity]
-  starts = candidates(picture, patch, scales, angles, candidates_tried, either_sign, partial)
+  places = candidates(picture, patch, scales, angles, candidates_tried, either_sign, partial)
   if _elongated(patch.shape):  # automatic levels go deeper (`_ELONGATED_COARSEST_PX`)
     config = config.for_template(patch.shape, patch, coarsest=_ELONGATED_COARSEST_PX)
   quick = bounded(config)
   accept = math.inf if config.accept_quality is None else config.accept_quality
   with counted() as spent:
-    best = _best_of(picture, patch, starts, quick, key, blurred_from, accept, either_sign)
+    best = _best_of(picture, patch, *places, quick, key, blurred_from, accept, either_sign)
     # The second alignment: detection.py, 2026-11-29 (--trials 100, seed 0), NCC's trial 81
     # went from 5.8 px off at NCC 0.28 to 0.11 px at 0.88; trial 42 from 1.7 to 2.9 px, to
     # NCC's own optimum (`align` from the truth ends 3.0 px off); success 99 % (MI) and 98 %
@@ -441,22 +458,38 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
                        num_evaluations=jnp.asarray(spent.evaluations, jnp.int32))
 
 
-def _best_of(picture, patch, starts, quick: TrackConfig, key, blurred_from, accept: float,
-             either_sign: bool) -> AlignResult | None:
-  """The highest-quality `search` candidate: each of `starts` aligned with `quick`, a smeared
-  alignment of it counting from the quality `blurred_from` (None: none tried), up to the
-  first that reaches `accept`; None where `starts` is empty."""
-  best = None
-  for start in starts:
-    found = align(picture, patch, start, config=quick, key=key)
-    if blurred_from is not None and float(found.quality) < accept:
-      smeared = blur.register_fitted(picture, patch, np.asarray(found.homography), quick, key,
-                                     either_sign)
-      if (smeared is not None and float(smeared.quality) > float(found.quality)
-          and float(smeared.quality) >= blurred_from):
-        found = smeared
-    if best is None or float(found.quality) > float(best.quality):
-      best = found
-    if float(found.quality) >= accept:
-      break
+def _best_of(picture, patch, inside, outside, quick: TrackConfig, key, blurred_from,
+             accept: float, either_sign: bool) -> AlignResult | None:
+  """The highest-quality `search` candidate: the starts of the places `inside`, then
+  `outside` (`candidates`), each aligned with `quick`, a smeared alignment of it counting from
+  the quality `blurred_from` (None: none tried), up to the first that reaches `accept`; the
+  places inside left once the best is clear ahead of another (`_clear_ahead`).  None where
+  there is no start."""
+  best, tops = None, []  # tops: each place's best quality
+  for index, place in enumerate(inside + outside):
+    if index < len(inside) and _clear_ahead(tops, quick):
+      continue
+    tops.append(-math.inf)
+    for start in place:
+      found = align(picture, patch, start, config=quick, key=key)
+      if blurred_from is not None and float(found.quality) < accept:
+        smeared = blur.register_fitted(picture, patch, np.asarray(found.homography), quick, key,
+                                       either_sign)
+        if (smeared is not None and float(smeared.quality) > float(found.quality)
+            and float(smeared.quality) >= blurred_from):
+          found = smeared
+      tops[-1] = max(tops[-1], float(found.quality))
+      if best is None or float(found.quality) > float(best.quality):
+        best = found
+      if float(found.quality) >= accept:
+        return best
   return best
+
+
+def _clear_ahead(tops: list, config: TrackConfig) -> bool:
+  """Whether the best of the places' qualities `tops` (at least two) is `_CLEAR_AHEAD` times
+  every other's and at least 1/`_CLEAR_AHEAD` of the lost threshold."""
+  if len(tops) < 2:
+    return False
+  runner_up, top = sorted(tops)[-2:]
+  return top >= config.lost_threshold / _CLEAR_AHEAD and top >= _CLEAR_AHEAD * max(runner_up, 0.0)
