@@ -91,8 +91,11 @@ _REFINE_LEVELS, _REFINE_PX = 2, 3
 # level and ranked there: a coarse peak of the background can outscore the
 # target's, whose larger patch on the finer level tells them apart
 # (benchmarks/results/detection.md: 96 % within 2 px with the coarse ranking,
-# 98 % with this one).
-_RERANK = 16
+# 98 % with this one).  Ranking 8× instead of 16× (2026-12-07, detection.py,
+# MI and NCC at seeds 0 and 1, MI at 3:1 and 6:1, 460 trials) left every
+# trial's error as it was, and halved the stage's ~580 small correlations;
+# 4× lost MI's trial 47 at seed 0.
+_RERANK = 8
 # The places wholly inside are aligned, best first, until the best one's
 # quality is _CLEAR_AHEAD times every other aligned place's (at least two,
 # the best at least 1/_CLEAR_AHEAD of the lost threshold): the coarse ranking
