@@ -92,10 +92,11 @@ _SAME_PLACE = 0.5
 # keeps its best peak turned more than _TURNED degrees from its own, where
 # that scores at least _TWIN times the place's, and, refined like it and
 # still at _TWIN times it, tries it as a place of its own right after it.
-# detection.py, 100 trials each (2026-12-08): MI at seed 1 96 → 99 %, seed
-# 2 94 → 97 %; NCC 96 → 99 % and 92 → 95 %; seeds 0 and 3 as they were, no
-# trial lost; MI at 3:1 (60 trials) 91.7 → 93.3 %, at 6:1 68.3 → 66.7 %
-# (a miss whose polish now starts from another wrong place).
+# detection.py, 100 trials each (2026-12-08): MI at seeds 1, 2, 4, 5 96 →
+# 99, 94 → 97, 95 → 96, 94 → 96 %; NCC 96 → 99, 92 → 95, 96 → 97, 95 → 97 %;
+# seeds 0 and 3 as they were, no trial lost; MI at 3:1 (60 trials) 91.7 →
+# 93.3 %, at 6:1 68.3 → 66.7 % (a miss whose polish now starts from another
+# wrong place).
 _TWIN, _TURNED = 0.8, 60.0
 # Each candidate is refined on this many finer levels, within this many
 # pixels of each level around its place.
