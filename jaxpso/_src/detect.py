@@ -13,10 +13,10 @@ millisecond per map).  A template whose inner square is flat at that level
 rotated footprint.  The best peaks, one per rotation and scale, merged
 where they name one place and ranked again on the next finer level, are the
 candidate basins; a place's peak at another rotation that scores nearly as
-well (a template that looks alike turned) is a candidate of its own.  An elongated template's inner disc places it but tells
-its rotation and scale poorly: around each candidate a grid of rotations and
-scales is scored by correlating the whole template, smoothed; the candidate's
-own start and the best of them are refined on a deeper pyramid than the
+well (a template that looks alike turned) is a candidate of its own.  An
+elongated template's inner disc places it but tells its rotation and scale
+poorly: around each candidate a grid of rotations and scales is scored by
+correlating the whole template, smoothed; the candidate's own start and the best of them are refined on a deeper pyramid than the
 template's default.  Each candidate is then a start of a bounded `align`
 (Gauss–Newton from the coarsest level, then from level 1, one quick swarm
 where those fall short), best first, until one reaches
@@ -87,8 +87,8 @@ _ANGLE_STEP, _SCALE_RATIO = 15.0, 2.0 ** (1 / 3)
 _SAME_PLACE = 0.5
 # A template that looks alike turned (bricks, tiles: half a turn) peaks at
 # its place at two rotations, and the one merged away may be the right one:
-# detection.py's seed 1 lost its three brick trials whose right rotation
-# scored 0.91-1.00 of the half turn's at the same place.  So each place also
+# detection.py's seed 1 lost four brick trials, three of them where the right
+# rotation scored 0.91-1.00 of the half turn's at its place.  So each place also
 # keeps its best peak turned more than _TURNED degrees from its own, where
 # that scores at least _TWIN times the place's, and, refined like it and
 # still at _TWIN times it, tries it as a place of its own right after it.
