@@ -16,8 +16,8 @@ candidate basins; a place's peak at another rotation that scores nearly as
 well (a template that looks alike turned) is a candidate of its own.  An
 elongated template's inner disc places it but tells its rotation and scale
 poorly: around each candidate a grid of rotations and scales is scored by
-correlating the whole template, smoothed; the candidate's own start and the best of them are refined on a deeper pyramid than the
-template's default.  Each candidate is then a start of a bounded `align`
+correlating the whole template, smoothed; the candidate's own start and the
+best of them are refined on a deeper pyramid than the template's default.  Each candidate is then a start of a bounded `align`
 (Gauss–Newton from the coarsest level, then from level 1, one quick swarm
 where those fall short), best first, until one reaches
 `TrackConfig.accept_quality` or is clearly ahead of another (`_CLEAR_AHEAD`:
