@@ -431,6 +431,17 @@ def test_detect_tries_the_half_turn_of_a_place_that_looks_alike_turned(similarit
   assert _error(jaxpso.detect(frame, template, config=config).homography, truth, 136) > 50.0
 
 
+def test_only_a_template_that_looks_alike_turned_keeps_twins(scene):
+  """Bricks look alike turned (the crop above: 0.87, `detect._ALIKE` 0.6); the camera crop
+  of the other tests does not (0.30), and its detections align no twin."""
+  template, _ = scene
+  bricks = jaxpso.data.load_image("brick")[262:398, 311:447].copy()
+  assert detection._looks_alike_turned(bricks)
+  assert not detection._looks_alike_turned(template)
+  flat = np.full((40, 40), 0.5, np.float32)
+  assert not detection._looks_alike_turned(flat)
+
+
 @pytest.mark.parametrize("similarity", ["mi", "ncc"])
 def test_detect_partial_finds_a_template_partly_outside_the_image(scene, similarity):
   """Two fifths of the template lie beyond the right edge: the candidates wholly inside the

@@ -99,6 +99,13 @@ _SAME_PLACE = 0.5
 # 93.3 %, at 6:1 68.3 → 66.7 % (a miss whose polish now starts from another
 # wrong place).
 _TWIN, _TURNED = 0.8, 60.0
+# Only a template that looks alike turned keeps twins: its inner square,
+# shrunk to span about _ALIKE_PX pixels and turned by a quarter, a half or
+# three quarters, correlates with the template somewhere at least _ALIKE.
+# detection.py's templates (seeds 0-2, 300): brick crops 0.24-0.95 (median
+# 0.71), the other photographs' 0.04-0.59; every trial the twins found
+# scored 0.71-0.92.  Elsewhere twins of wrong places only cost alignments.
+_ALIKE_PX, _ALIKE = 24.0, 0.6
 # Each candidate is refined on this many finer levels, within this many
 # pixels of each level around its place.
 _REFINE_LEVELS, _REFINE_PX = 2, 3
@@ -302,6 +309,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
                            places=_PARTIAL_PLACES if border else 1):
           peaks.append(found + (scale, angle, level))
     peaks.sort(key=lambda p: -p[0])
+    alike = _looks_alike_turned(template)
     # spots: the chosen places as Python floats (math.dist's fast path); twins: each place's
     # best peak turned more than `_TURNED` from its own that scores `_TWIN` times it, or None.
     chosen, spots, twins = [], [], []
@@ -314,7 +322,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
         chosen.append(peak)
         spots.append(spot)
         twins.append(None)
-      elif (not border and twins[near] is None and _turned(peak[3], chosen[near][3])
+      elif (alike and not border and twins[near] is None and _turned(peak[3], chosen[near][3])
             and peak[0] >= _TWIN * chosen[near][0]):
         twins[near] = peak
       if len(chosen) == _RERANK * wanted:
@@ -370,6 +378,27 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
 
   return (starts(count, False, scales, angles),
           starts(_PARTIAL_CANDIDATES, True, *partial) if partial is not None else [])
+
+
+def _looks_alike_turned(template: np.ndarray) -> bool:
+  """Whether `template` (h, w) float32 looks alike turned by a quarter, a half or three quarters
+  of a turn (`_ALIKE`); a template whose inner square is flat does not."""
+  import cv2  # lazily: `import jaxpso` stays free of OpenCV
+
+  factor = min(1.0, _ALIKE_PX / (min(template.shape) / math.sqrt(2.0)))
+  small = template
+  if factor < 1.0:
+    sigma = 0.5 * math.sqrt(1 / factor ** 2 - 1)
+    small = cv2.resize(cv2.GaussianBlur(template, (0, 0), sigma), None, fx=factor, fy=factor,
+                       interpolation=cv2.INTER_AREA)
+  side = int(round(min(small.shape) / math.sqrt(2.0)))
+  top, left = ((n - side) // 2 for n in small.shape)
+  square = small[top:top + side, left:left + side]
+  if float(cv2.meanStdDev(square)[1][0, 0]) < checks.MIN_TEXTURE / 4:  # flat: matchTemplate says 1
+    return False
+  return any(float(np.nanmax(cv2.matchTemplate(small, np.ascontiguousarray(np.rot90(square, k)),
+                                                cv2.TM_CCOEFF_NORMED))) >= _ALIKE
+             for k in (1, 2, 3))
 
 
 def _turned(a: float, b: float) -> bool:
