@@ -103,7 +103,7 @@ _TWIN, _TURNED = 0.8, 60.0
 # shrunk to span about _ALIKE_PX pixels and turned by a quarter, a half or
 # three quarters, correlates with the template somewhere at least _ALIKE.
 # detection.py's templates (seeds 0-2, 300): brick crops 0.24-0.95 (median
-# 0.71), the other photographs' 0.04-0.59; every trial the twins found
+# 0.71), the other photographs' 0.04-0.59; the six trials the twins fixed there
 # scored 0.71-0.92.  Elsewhere twins of wrong places only cost alignments.
 _ALIKE_PX, _ALIKE = 24.0, 0.6
 # Each candidate is refined on this many finer levels, within this many
