@@ -225,7 +225,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
   def smoothed(factor):
     """(the template low-passed before shrinking by `factor` (a Gaussian of about half the new
     pixel) or itself; whether its inner square varies under `_FLAT_MIDDLE` of its spread)."""
-    sigma = 0.5 * math.sqrt(1 / factor ** 2 - 1) if factor < 1 else 0.0
+    sigma = _antialias_sigma(factor)
     sigma = sigma if sigma > 0.3 else 0.0
     if sigma not in lowpassed:
       blurred = cv2.GaussianBlur(template, (0, 0), sigma) if sigma else template
@@ -309,7 +309,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
                            places=_PARTIAL_PLACES if border else 1):
           peaks.append(found + (scale, angle, level))
     peaks.sort(key=lambda p: -p[0])
-    alike = _looks_alike_turned(template)
+    alike = not border and _looks_alike_turned(template)  # twins: places wholly inside only
     # spots: the chosen places as Python floats (math.dist's fast path); twins: each place's
     # best peak turned more than `_TURNED` from its own that scores `_TWIN` times it, or None.
     chosen, spots, twins = [], [], []
@@ -322,7 +322,7 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
         chosen.append(peak)
         spots.append(spot)
         twins.append(None)
-      elif (alike and not border and twins[near] is None and _turned(peak[3], chosen[near][3])
+      elif (alike and twins[near] is None and _turned(peak[3], chosen[near][3])
             and peak[0] >= _TWIN * chosen[near][0]):
         twins[near] = peak
       if len(chosen) == _RERANK * wanted:
@@ -380,6 +380,12 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
           starts(_PARTIAL_CANDIDATES, True, *partial) if partial is not None else [])
 
 
+def _antialias_sigma(factor: float) -> float:
+  """The Gaussian sigma (pixels) that low-passes an image before it is shrunk by `factor`: about
+  half the new pixel; 0 for `factor` >= 1."""
+  return 0.5 * math.sqrt(1 / factor ** 2 - 1) if factor < 1 else 0.0
+
+
 def _looks_alike_turned(template: np.ndarray) -> bool:
   """Whether `template` (h, w) float32 looks alike turned by a quarter, a half or three quarters
   of a turn (`_ALIKE`); a template whose inner square is flat does not."""
@@ -388,9 +394,8 @@ def _looks_alike_turned(template: np.ndarray) -> bool:
   factor = min(1.0, _ALIKE_PX / (min(template.shape) / math.sqrt(2.0)))
   small = template
   if factor < 1.0:
-    sigma = 0.5 * math.sqrt(1 / factor ** 2 - 1)
-    small = cv2.resize(cv2.GaussianBlur(template, (0, 0), sigma), None, fx=factor, fy=factor,
-                       interpolation=cv2.INTER_AREA)
+    small = cv2.resize(cv2.GaussianBlur(template, (0, 0), _antialias_sigma(factor)), None,
+                       fx=factor, fy=factor, interpolation=cv2.INTER_AREA)
   side = int(round(min(small.shape) / math.sqrt(2.0)))
   top, left = ((n - side) // 2 for n in small.shape)
   square = small[top:top + side, left:left + side]
