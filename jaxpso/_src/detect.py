@@ -24,7 +24,10 @@ best first, until one reaches `TrackConfig.accept_quality` or is clearly
 ahead of another (`_CLEAR_AHEAD`: evidence that does not rest on the
 quality's level, which differs from one image to the next); the best, where
 it falls short of the first, is aligned again with the caller's config
-(retries, the full search).  So `detect` adds no compiled program: it runs
+(retries, the full search).  Where no place reached the first nor was clearly
+ahead, the whole search runs again with the disc spanning twice the pixels,
+on the next finer level (`_SECOND_LOOK_PX`; not for an elongated template),
+and the better of the two bests stands.  So `detect` adds no compiled program: it runs
 `align`'s.  With `partial`, places where the inner square lies partly
 outside the image are correlated too, over the pixels inside
 (`_masked_correlation`), and the best of them are tried after the others: a
@@ -129,6 +132,21 @@ _RERANK = 8
 # per detection 3.5-3.6 → 2.0 (squares), 7.0 → 4.2 (3:1), 7.8 → 5.6 (6:1),
 # NCC's 1.6-1.7 → 1.3-1.4.  Places partly outside are aligned whatever.
 _CLEAR_AHEAD = 2.0
+# `detect` looks again where its best place is neither accepted nor clear ahead
+# (`_best_of`): candidates from maps where the inner disc spans this many
+# pixels, one pyramid level finer, aligned alike, the better best standing.  A
+# coarse texture of low contrast (grass, gravel) can be flat where the disc
+# spans _PATCH_PX, and a smaller scale's peak on a finer map outscores its own.
+# At 24 px instead of 12, detection.py (seeds 0-5, 100 trials each,
+# 2026-12-08) found 571 of 600 (MI) and 572 (NCC) against 585 and 583, but not
+# the same ones: the coarser maps find what the finer ones miss too.  Looking
+# again (the same seeds, db7b05e beside): 585 → 589 (MI), 583 → 587 (NCC),
+# none lost, medians as before, the 90th percentile up to 2.3×
+# (detection_look*.md).  Not for an elongated template (`_ELONGATED`), whose
+# inner disc is a small part of it: at 3:1 no trial gained and at 6:1 one of
+# 60, at 1.8-1.9× the 90th percentile's time (detection_look_aspect3.md,
+# detection_look_aspect6.md).
+_SECOND_LOOK_PX = 24.0
 # `detect(partial=True)` correlates the template's inner square where at
 # least this share of it lies inside the image (a template about half
 # inside), over that share alone.
@@ -200,7 +218,7 @@ def _masked_correlation(picture: np.ndarray, patch: np.ndarray, first, last,
 
 
 def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: int,
-               either_sign: bool, partial=None):
+               either_sign: bool, partial=None, patch_px: float = _PATCH_PX):
   """(places wholly inside, places partly outside): lists of places, best first, each a list
   of (3, 3) float64 starts from the coarse correlation stage, up to `count` places inside,
   each followed by its turned twin where it has one (`_TWIN`); a place's one start, or for an
@@ -211,7 +229,8 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
   counts as a match too; `partial` (scales, angles) ranges: up to
   `_PARTIAL_CANDIDATES` places partly outside within them, where up to
   `1 - _PARTIAL_SHARE` of the template's inner square lies outside the image
-  (None: none).
+  (None: none); `patch_px`: the pixels the inner disc spans on the level it is correlated on
+  (`_PATCH_PX`, `_SECOND_LOOK_PX`).
   """
   import cv2  # lazily: `import jaxpso` stays free of OpenCV
 
@@ -290,8 +309,8 @@ def candidates(image: np.ndarray, template: np.ndarray, scales, angles, count: i
     return found
 
   def level_of(scale):
-    level = max(0, int(round(math.log2(disc * scale / _PATCH_PX))))
-    while len(levels) <= level and min(levels[-1].shape) >= 2 * _PATCH_PX:
+    level = max(0, int(round(math.log2(disc * scale / patch_px))))
+    while len(levels) <= level and min(levels[-1].shape) >= 2 * patch_px:
       levels.append(cv2.pyrDown(levels[-1]))
     return min(level, len(levels) - 1)
 
@@ -505,7 +524,8 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
   a candidate's smeared alignment (`blur.register_fitted`) counts where its quality reaches
   this, None: none is tried; `partial`: the (scales, angles) ranges of the places partly
   outside the image also searched (`candidates`), None: none; `polish`: a best short of
-  `accept_quality` is aligned again from itself with `config` (retries, the full search).
+  `accept_quality` is aligned again from itself with `config` (`_polished`), and where it
+  was not sure (`_best_of`) the places of a second look (`_SECOND_LOOK_PX`) too.
   Its counts (`num_iterations`, `num_evaluations`) sum every alignment run.  None where no
   place could be correlated (the template does not fit, or is flat at every scale)."""
   either_sign = _EITHER_SIGN[config.similarity]
@@ -515,29 +535,47 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
   quick = bounded(config)
   accept = math.inf if config.accept_quality is None else config.accept_quality
   with counted() as spent:
-    best = _best_of(picture, patch, *places, quick, key, blurred_from, accept, either_sign)
-    # The second alignment: detection.py, 2026-11-29 (--trials 100, seed 0), NCC's trial 81
-    # went from 5.8 px off at NCC 0.28 to 0.11 px at 0.88; trial 42 from 1.7 to 2.9 px, to
-    # NCC's own optimum (`align` from the truth ends 3.0 px off); success 99 % (MI) and 98 %
-    # (NCC) as before, medians within the host's noise.  Not in `track`'s re-detection
-    # (`polish` False), where a region often is not in the frame at all.
-    if polish and best is not None and -math.inf < float(best.quality) < accept:
-      again = align(picture, patch, best.homography, config=config, key=key)
-      if float(again.quality) > float(best.quality):
-        best = again
+    best, sure = _best_of(picture, patch, *places, quick, key, blurred_from, accept, either_sign)
+    if polish:
+      best = _polished(best, picture, patch, config, key, accept)
+      if (best is not None and not sure and float(best.quality) < accept
+          and not _elongated(patch.shape)):
+        closer, _ = candidates(picture, patch, scales, angles, candidates_tried, either_sign,
+                               patch_px=_SECOND_LOOK_PX)
+        other, _ = _best_of(picture, patch, closer, [], quick, key, blurred_from, accept,
+                            either_sign)
+        other = _polished(other, picture, patch, config, key, accept)
+        if other is not None and float(other.quality) > float(best.quality):
+          best = other
   if best is None:
     return None
   return best._replace(num_iterations=jnp.asarray(spent.iterations, jnp.int32),
                        num_evaluations=jnp.asarray(spent.evaluations, jnp.int32))
 
 
+def _polished(found: AlignResult | None, picture, patch, config: TrackConfig, key,
+              accept: float) -> AlignResult | None:
+  """`found`, or where its quality is short of `accept`, its alignment again with `config`
+  (retries, the full search) if that is better.
+
+  detection.py, 2026-11-29 (--trials 100, seed 0): NCC's trial 81 went from 5.8 px off at NCC
+  0.28 to 0.11 px at 0.88; trial 42 from 1.7 to 2.9 px, to NCC's own optimum (`align` from
+  the truth ends 3.0 px off); success 99 % (MI) and 98 % (NCC) as before, medians within the
+  host's noise.  Not in `track`'s re-detection (`search`'s `polish` False), where a region
+  often is not in the frame at all."""
+  if found is None or not -math.inf < float(found.quality) < accept:
+    return found
+  again = align(picture, patch, found.homography, config=config, key=key)
+  return again if float(again.quality) > float(found.quality) else found
+
+
 def _best_of(picture, patch, inside, outside, quick: TrackConfig, key, blurred_from,
-             accept: float, either_sign: bool) -> AlignResult | None:
-  """The highest-quality `search` candidate: the starts of the places `inside`, then
-  `outside` (`candidates`), each aligned with `quick`, a smeared alignment of it counting from
-  the quality `blurred_from` (None: none tried), up to the first that reaches `accept`; the
-  places inside left once the best is clear ahead of another (`_clear_ahead`).  None where
-  there is no start."""
+             accept: float, either_sign: bool) -> tuple[AlignResult | None, bool]:
+  """(the highest-quality `search` candidate, whether it is sure): the starts of the places
+  `inside`, then `outside` (`candidates`), each aligned with `quick`, a smeared alignment of it
+  counting from the quality `blurred_from` (None: none tried), up to the first that reaches
+  `accept`; the places inside left once the best is clear ahead of another (`_clear_ahead`).
+  Sure: it reached `accept` or is clear ahead.  None where there is no start."""
   best, tops = None, []  # tops: each place's best quality
   for index, place in enumerate(inside + outside):
     if index < len(inside) and _clear_ahead(tops, quick):
@@ -555,8 +593,8 @@ def _best_of(picture, patch, inside, outside, quick: TrackConfig, key, blurred_f
       if best is None or float(found.quality) > float(best.quality):
         best = found
       if float(found.quality) >= accept:
-        return best
-  return best
+        return best, True
+  return best, _clear_ahead(tops, quick)
 
 
 def _clear_ahead(tops: list, config: TrackConfig) -> bool:
