@@ -459,6 +459,9 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
   first, until one reaches `TrackConfig.accept_quality` or is twice every
   other's quality (`_CLEAR_AHEAD`); a best short of the first
   is aligned again from there with `config` (retries, the full search).
+  Where neither held, a second look correlates one pyramid level finer
+  (`_SECOND_LOOK_PX`; not for a template over 2:1) and refines its own
+  candidates alike, and the better of the two bests is returned.
 
   Args:
     image: (H, W) grey or (H, W, 3) colour, uint8 or float in [0, 1].
@@ -467,7 +470,7 @@ def detect(image, template, *, config: TrackConfig = TrackConfig(), key=0,
     key: the swarm's seed (`align`'s).
     scales: (low, high) > 0: the template's size in the image relative to its own.
     angles: (low, high) in-plane rotation in degrees (at most a full turn).
-    candidates_tried: how many candidate places `align` refines at most (each
+    candidates_tried: how many candidate places `align` refines at most per look (each
       from two starts, of rotation and scale fitted there, where the
       template's long side is over twice its short one), besides a place's
       turned twin where the template looks alike turned there.
