@@ -20,18 +20,18 @@ correlating the whole template, smoothed; the candidate's own start and the
 best of them are refined on a deeper pyramid than the template's default.
 Each candidate is then a start of a bounded `align` (Gauss–Newton from the
 coarsest level, then from level 1, one quick swarm where those fall short),
-best first, until one reaches `TrackConfig.accept_quality` or is clearly
-ahead of another (`_CLEAR_AHEAD`: evidence that does not rest on the
-quality's level, which differs from one image to the next); the best, where
-it falls short of the first, is aligned again with the caller's config
-(retries, the full search).  Where no place reached the first nor was clearly
-ahead, the whole search runs again with the disc spanning twice the pixels,
-on the next finer level (`_SECOND_LOOK_PX`; not for an elongated template),
-and the better of the two bests stands.  So `detect` adds no compiled program: it runs
-`align`'s.  With `partial`, places where the inner square lies partly
-outside the image are correlated too, over the pixels inside
-(`_masked_correlation`), and the best of them are tried after the others: a
-region coming back into the frame.
+best first, until one reaches `TrackConfig.accept_quality` or is clearly ahead
+of another (`_CLEAR_AHEAD`: evidence that does not rest on the quality's
+level, which differs from one image to the next); the best, where it falls
+short of the first, is aligned again with the caller's config (retries, the
+full search).  Where no place reached the first nor was clearly ahead, the
+whole search runs again with the disc spanning twice the pixels, on the next
+finer level (`_SECOND_LOOK_PX`; not for an elongated template), and the better
+of the two bests stands.  So `detect` adds no compiled program: it runs
+`align`'s.  With `partial`, places where the inner square lies partly outside
+the image are correlated too, over the pixels inside (`_masked_correlation`),
+and the best of them are tried after the others: a region coming back into the
+frame.
 """
 
 from __future__ import annotations
