@@ -437,9 +437,9 @@ def test_detect_tries_the_half_turn_of_a_place_that_looks_alike_turned(similarit
 
 @pytest.mark.parametrize("similarity", ["mi", "ncc"])
 def test_detect_looks_again_closer_where_its_best_is_in_doubt(similarity, monkeypatch):
-  """A camera crop at 1.5× on bricks in a 480×640 frame (detection.py's seed 2, trial 6): its
-  coarse texture is flat where the inner disc spans 12 px, and smaller scales' peaks outscore
-  it; no place is clear ahead of another.  The second look (`detect._SECOND_LOOK_PX`) finds
+  """A camera crop at 1.5× on bricks in a 480×640 frame (detection.py's seed 2, trial 6): where
+  the inner disc spans 12 px, smaller scales' peaks outscore it (every candidate at 0.42-0.75×)
+  and no place is clear ahead of another.  The second look (`detect._SECOND_LOOK_PX`) finds
   it: measured 0.40 (MI) and 0.43 px (NCC); looking again at 12 px, 111-113 px off."""
   template = jaxpso.data.load_image("camera")[305:451, 142:288].copy()
   background = cv2.resize(jaxpso.data.load_image("brick"), None, fx=1.7, fy=1.7)
