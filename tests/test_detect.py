@@ -455,7 +455,7 @@ def test_detect_looks_again_closer_where_its_best_is_in_doubt(similarity, monkey
 
 def test_only_a_template_that_looks_alike_turned_keeps_twins(scene):
   """Bricks look alike turned (the crop above: 0.87, `detect._ALIKE` 0.6); the camera crop
-  of the other tests does not (0.30), and its detections align no twin."""
+  of the other tests does not (0.30), nor does a flat square."""
   template, _ = scene
   bricks = jaxpso.data.load_image("brick")[262:398, 311:447].copy()
   assert detection._looks_alike_turned(bricks)

@@ -534,7 +534,8 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
   place could be correlated (the template does not fit, or is flat at every scale)."""
   either_sign = _EITHER_SIGN[config.similarity]
   places = candidates(picture, patch, scales, angles, candidates_tried, either_sign, partial)
-  if _elongated(patch.shape):  # automatic levels go deeper (`_ELONGATED_COARSEST_PX`)
+  elongated = _elongated(patch.shape)
+  if elongated:  # automatic levels go deeper (`_ELONGATED_COARSEST_PX`)
     config = config.for_template(patch.shape, patch, coarsest=_ELONGATED_COARSEST_PX)
   quick = bounded(config)
   accept = math.inf if config.accept_quality is None else config.accept_quality
@@ -542,8 +543,7 @@ def search(picture: np.ndarray, patch: np.ndarray, config: TrackConfig, key, sca
     best, sure = _best_of(picture, patch, *places, quick, key, blurred_from, accept, either_sign)
     if polish:
       best = _polished(best, picture, patch, config, key, accept)
-      if (best is not None and not sure and float(best.quality) < accept
-          and not _elongated(patch.shape)):
+      if best is not None and not sure and float(best.quality) < accept and not elongated:
         closer, _ = candidates(picture, patch, scales, angles, candidates_tried, either_sign,
                                patch_px=_SECOND_LOOK_PX)
         other, _ = _best_of(picture, patch, closer, [], quick, key, blurred_from, accept,
